@@ -1,0 +1,116 @@
+"""Body parts: about 20 regions of the canonical skeleton, shared by every body model.
+
+Used for self-collision classes (which parts may touch), for dropping unreachable parts from the
+cloth collider, and as the segmentation that GCVAE-style models pool over.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from datagen.skeleton import JOINT_INDEX, NUM_JOINTS
+
+PART_NAMES: tuple[str, ...] = (
+    "pelvis",
+    "thigh_l",
+    "thigh_r",
+    "spine_lower",
+    "shin_l",
+    "shin_r",
+    "spine_mid",
+    "foot_l",
+    "foot_r",
+    "chest",
+    "neck",
+    "collar_l",
+    "collar_r",
+    "head",
+    "upperarm_l",
+    "upperarm_r",
+    "forearm_l",
+    "forearm_r",
+    "hand_l",
+    "hand_r",
+)
+PART_INDEX = {name: i for i, name in enumerate(PART_NAMES)}
+
+# Canonical joint -> the part its rotation moves.
+_JOINT_PART = {
+    "pelvis": "pelvis",
+    "left_hip": "thigh_l",
+    "right_hip": "thigh_r",
+    "spine1": "spine_lower",
+    "left_knee": "shin_l",
+    "right_knee": "shin_r",
+    "spine2": "spine_mid",
+    "left_ankle": "foot_l",
+    "right_ankle": "foot_r",
+    "spine3": "chest",
+    "left_foot": "foot_l",
+    "right_foot": "foot_r",
+    "neck": "neck",
+    "left_collar": "collar_l",
+    "right_collar": "collar_r",
+    "head": "head",
+    "left_shoulder": "upperarm_l",
+    "right_shoulder": "upperarm_r",
+    "left_elbow": "forearm_l",
+    "right_elbow": "forearm_r",
+    "left_wrist": "hand_l",
+    "right_wrist": "hand_r",
+    "left_hand": "hand_l",
+    "right_hand": "hand_r",
+}
+JOINT_TO_PART = np.array(
+    [PART_INDEX[_JOINT_PART[name]] for name in sorted(JOINT_INDEX, key=JOINT_INDEX.get)],
+    dtype=np.int16,
+)
+assert len(JOINT_TO_PART) == NUM_JOINTS
+
+TORSO = frozenset({"pelvis", "spine_lower", "spine_mid", "chest", "neck", "collar_l", "collar_r"})
+
+# Parts that meet at a joint, or belong to the torso: contact between them is normal anatomy.
+_NEIGHBOUR_PAIRS = {
+    ("pelvis", "thigh_l"),
+    ("pelvis", "thigh_r"),
+    ("thigh_l", "shin_l"),
+    ("thigh_r", "shin_r"),
+    ("shin_l", "foot_l"),
+    ("shin_r", "foot_r"),
+    ("neck", "head"),
+    ("collar_l", "upperarm_l"),
+    ("collar_r", "upperarm_r"),
+    ("upperarm_l", "forearm_l"),
+    ("upperarm_r", "forearm_r"),
+    ("forearm_l", "hand_l"),
+    ("forearm_r", "hand_r"),
+    ("spine_lower", "thigh_l"),
+    ("spine_lower", "thigh_r"),
+    ("chest", "upperarm_l"),
+    ("chest", "upperarm_r"),
+}
+
+
+def part_neighbours() -> np.ndarray:
+    """(P, P) bool: True where contact between the two parts is not a self-collision."""
+    n = len(PART_NAMES)
+    nb = np.eye(n, dtype=bool)
+    for a in TORSO:
+        for b in TORSO:
+            nb[PART_INDEX[a], PART_INDEX[b]] = True
+    for a, b in _NEIGHBOUR_PAIRS:
+        nb[PART_INDEX[a], PART_INDEX[b]] = nb[PART_INDEX[b], PART_INDEX[a]] = True
+    return nb
+
+
+# Where small intersections are expected and repairable (thesis 3.3.1: armpits and crotch).
+SOLVABLE_PAIRS = frozenset(
+    {
+        frozenset({"upperarm_l", "spine_mid"}),
+        frozenset({"upperarm_r", "spine_mid"}),
+        frozenset({"upperarm_l", "collar_l"}),
+        frozenset({"thigh_l", "thigh_r"}),
+        frozenset({"thigh_l", "spine_lower"}),
+        frozenset({"thigh_r", "spine_lower"}),
+    }
+)

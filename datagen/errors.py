@@ -1,0 +1,53 @@
+"""Errors that the CLI turns into one line and a non-zero exit.
+
+Every user-facing failure says which file, which field, and what was expected, so a user can fix
+their input without reading a traceback.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class DatagenError(Exception):
+    """Base class of the errors the CLI reports without a traceback."""
+
+
+class InputError(DatagenError):
+    """Bad user input: a file, the field in it that is wrong, and what was expected."""
+
+    def __init__(
+        self,
+        source: str | Path | None,
+        field: str | None,
+        expected: str,
+        got: object = None,
+    ) -> None:
+        self.source = str(source) if source is not None else None
+        self.field = field
+        self.expected = expected
+        self.got = got
+        parts = []
+        if self.source:
+            parts.append(self.source)
+        if field:
+            parts.append(f"field '{field}'")
+        where = ": ".join(parts)
+        message = f"expected {expected}"
+        if got is not None:
+            shown = repr(got)
+            if len(shown) > 80:
+                shown = shown[:77] + "..."
+            message += f", got {shown}"
+        super().__init__(f"{where}: {message}" if where else message)
+
+
+class RejectedSequence(DatagenError):
+    """A sequence that cannot be made valid (e.g. an arm through the torso): recorded, not written."""
+
+    def __init__(self, stage: str, reason: str, frames: tuple[int, int] | None = None) -> None:
+        self.stage = stage
+        self.reason = reason
+        self.frames = frames
+        where = f" (frames {frames[0]}-{frames[1]})" if frames else ""
+        super().__init__(f"rejected at {stage}: {reason}{where}")

@@ -1,0 +1,128 @@
+"""Hand-off types between the pipeline stages: plain dataclasses of numpy arrays.
+
+Every stage imports this module and nothing of the other stages (docs/architecture.md). Arrays
+are float64 where they describe inputs and references, float32 for per-frame geometry.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Motion:
+    """A canonical pose sequence (see datagen.skeleton for the conventions).
+
+    `trans` refers to a skeleton whose standing pelvis is `pelvis_height` metres above the soles;
+    the body stage rescales it to each subject so that feet keep their contacts.
+    """
+
+    poses: np.ndarray  # (F, 72) float64
+    trans: np.ndarray  # (F, 3) float64, pelvis world position, ground at z = 0
+    fps: float
+    label: str  # action label, e.g. "walk"
+    source: str  # "procedural", "bvh:<file>", "amass:<file>"
+    pelvis_height: float  # metres, of the skeleton `trans` refers to
+
+    def __post_init__(self) -> None:
+        self.poses = np.asarray(self.poses, dtype=np.float64)
+        self.trans = np.asarray(self.trans, dtype=np.float64)
+        if self.poses.ndim != 2 or self.poses.shape[1] != 72:
+            raise ValueError(f"poses must be (F, 72), got {self.poses.shape}")
+        if self.trans.shape != (self.poses.shape[0], 3):
+            raise ValueError(f"trans must be ({self.poses.shape[0]}, 3), got {self.trans.shape}")
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.poses.shape[0])
+
+    @property
+    def duration(self) -> float:
+        return (self.n_frames - 1) / self.fps
+
+
+@dataclass
+class RestBody:
+    """One subject in the canonical T-pose: what garments are fitted to."""
+
+    model: str  # body model name, e.g. "anny"
+    gender: str  # "female" | "male"
+    shape: np.ndarray  # (S,) float64, the model's own shape parameters
+    shape_names: tuple[str, ...]
+    vertices: np.ndarray  # (V, 3) float64, T-pose, soles at z = 0, pelvis above the origin
+    faces: np.ndarray  # (T, 3) int32
+    joints: np.ndarray  # (24, 3) float64, T-pose joint positions in the same frame as vertices
+    part_labels: np.ndarray  # (V,) int16, index into part_names
+    part_names: tuple[str, ...]
+
+    @property
+    def pelvis_height(self) -> float:
+        return float(self.joints[0, 2] - self.vertices[:, 2].min())
+
+
+@dataclass
+class LinearSkinning:
+    """Enough to rebuild posed body vertices exactly without the body model:
+    v[f, i] = sum_k weights[i, k] * (transforms[f, bones[i, k]] @ [rest[i], 1]) + corrections."""
+
+    rest_vertices: np.ndarray  # (V, 3) float64, the model's own rest pose
+    weights: np.ndarray  # (V, K) float32
+    bones: np.ndarray  # (V, K) int32
+    transforms: np.ndarray  # (F, B, 3, 4) float64
+
+
+@dataclass
+class SelfCollisionReport:
+    """What the self-collision stage found and did, per sequence."""
+
+    frames_checked: int = 0
+    frames_with_contact: int = 0
+    intersecting_pairs: int = 0  # triangle pairs over all frames, before repair
+    repaired_vertices: int = 0  # distinct (frame, vertex) moved by the repair
+    max_repair_offset: float = 0.0  # metres
+    residual_pairs: int = 0  # after repair
+    by_part_pair: dict[str, int] = field(default_factory=dict)
+    dropped_parts: tuple[str, ...] = ()
+
+    def as_dict(self) -> dict:
+        return {
+            "frames_checked": self.frames_checked,
+            "frames_with_contact": self.frames_with_contact,
+            "intersecting_pairs": self.intersecting_pairs,
+            "repaired_vertices": self.repaired_vertices,
+            "max_repair_offset": self.max_repair_offset,
+            "residual_pairs": self.residual_pairs,
+            "by_part_pair": dict(self.by_part_pair),
+            "dropped_parts": list(self.dropped_parts),
+        }
+
+
+@dataclass
+class BodySequence:
+    """The body stage's result: a subject moving through a motion, self-collisions repaired.
+
+    `vertices` are what the simulator collides with and what is stored; the skinning plus the
+    sparse repair offsets rebuild them exactly.
+    """
+
+    rest: RestBody
+    poses: np.ndarray  # (F, 72) float64, canonical
+    trans: np.ndarray  # (F, 3) float64, pelvis world position for this subject
+    fps: float
+    action: str
+    motion_source: str
+    lead_in_frames: int  # the first frames blend from the rest pose into the motion
+    joints: np.ndarray  # (F, 24, 3) float32
+    vertices: np.ndarray  # (F, V, 3) float32, repaired
+    skinning: LinearSkinning | None  # None when the model is not pure LBS (e.g. SMPL)
+    repair_frames: np.ndarray  # (K,) int32: sparse repair offsets (frame, vertex, offset)
+    repair_vertices: np.ndarray  # (K,) int32
+    repair_offsets: np.ndarray  # (K, 3) float32
+    self_collision: SelfCollisionReport
+    collider_face_mask: np.ndarray  # (T,) bool: faces the cloth collides with
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.poses.shape[0])
