@@ -43,7 +43,7 @@ class InputError(DatagenError):
 
 
 class RejectedSequence(DatagenError):
-    """A sequence that cannot be made valid (e.g. an arm through the torso): recorded, not written."""
+    """A sequence that cannot be made valid (an arm through the torso): recorded, not written."""
 
     def __init__(self, stage: str, reason: str, frames: tuple[int, int] | None = None) -> None:
         self.stage = stage

@@ -3,13 +3,17 @@
 Conventions (docs/architecture.md, "Conventions"):
 
 - World: right-handed, z up, metres; the ground is the plane z = 0.
-- Pose zero is the T-pose standing upright in the world: facing -y, the body's left side at +x
-  (the SMPL body after the CLOTH3D root rotation of +90 degrees about x). So a canonical root
-  rotation of zero means "upright, facing -y"; SMPL/CLOTH3D poses convert with
-  `smpl_root_to_canonical`.
-- `poses (F, 72)`: per joint an axis-angle rotation relative to the parent, in world-aligned axes
-  at rest (SMPL semantics: every joint's rest frame is the world frame).
+- `poses (F, 72)`: axis-angle per joint. Joints 1..23 use SMPL's numbers exactly: each is a
+  rotation relative to the parent, expressed in the axes of SMPL's body frame (y up, facing +z),
+  so AMASS and CLOTH3D joint rotations are used verbatim.
+- The root (joint 0) rotates the upright body in the z-up world: zero means standing upright,
+  facing -y, the body's left at +x (the SMPL body after CLOTH3D's root rotation of +90 degrees
+  about x). SMPL/AMASS/CLOTH3D roots convert with `smpl_root_to_canonical`.
+- Pose zero is the T-pose.
 - `trans (F, 3)`: the world position of the pelvis joint (not SMPL's offset-from-template).
+
+In world axes, a child's local rotation L_j is S L_j S^T with S = SMPL_TO_WORLD; the helpers
+`local_to_world_axes` and `world_axes_to_local` convert, and `forward_kinematics` applies it.
 """
 
 from __future__ import annotations
@@ -45,13 +49,40 @@ JOINT_NAMES: tuple[str, ...] = (
     "right_hand",
 )
 NUM_JOINTS = len(JOINT_NAMES)
-PARENTS: tuple[int, ...] = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21)
+PARENTS: tuple[int, ...] = (
+    -1,
+    0,
+    0,
+    0,
+    1,
+    2,
+    3,
+    4,
+    5,
+    6,
+    7,
+    8,
+    9,
+    9,
+    9,
+    12,
+    13,
+    14,
+    16,
+    17,
+    18,
+    19,
+    20,
+    21,
+)
 JOINT_INDEX = {name: i for i, name in enumerate(JOINT_NAMES)}
 
 # Left/right pairs, for mirroring motions.
 MIRROR = tuple(
-    JOINT_INDEX[n.replace("left_", "right_")] if n.startswith("left_")
-    else JOINT_INDEX[n.replace("right_", "left_")] if n.startswith("right_")
+    JOINT_INDEX[n.replace("left_", "right_")]
+    if n.startswith("left_")
+    else JOINT_INDEX[n.replace("right_", "left_")]
+    if n.startswith("right_")
     else i
     for i, n in enumerate(JOINT_NAMES)
 )
@@ -112,7 +143,7 @@ def forward_kinematics(
     """
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, NUM_JOINTS, 3)
     trans = np.asarray(trans, dtype=np.float64).reshape(-1, 3)
-    local = axis_angle_to_matrix(poses)  # (F, 24, 3, 3)
+    local = local_to_world_axes(axis_angle_to_matrix(poses))  # (F, 24, 3, 3)
     n_frames = poses.shape[0]
     world_rot = np.empty_like(local)
     world_pos = np.empty((n_frames, NUM_JOINTS, 3))
@@ -126,6 +157,22 @@ def forward_kinematics(
     return world_rot, world_pos
 
 
+def local_to_world_axes(local: np.ndarray) -> np.ndarray:
+    """Canonical local rotation matrices (..., 24, 3, 3) -> the same rotations in world axes
+    (the root is already in world axes; children are conjugated by SMPL_TO_WORLD)."""
+    out = np.array(local, dtype=np.float64, copy=True)
+    out[..., 1:, :, :] = SMPL_TO_WORLD @ out[..., 1:, :, :] @ SMPL_TO_WORLD.T
+    return out
+
+
+def world_axes_to_local(rot: np.ndarray) -> np.ndarray:
+    """Inverse of `local_to_world_axes`: rotations relative to the parent expressed in world axes
+    (..., 24, 3, 3) -> canonical local rotation matrices."""
+    out = np.array(rot, dtype=np.float64, copy=True)
+    out[..., 1:, :, :] = SMPL_TO_WORLD.T @ out[..., 1:, :, :] @ SMPL_TO_WORLD
+    return out
+
+
 def world_to_local(world_rot: np.ndarray) -> np.ndarray:
     """World joint rotations (F, 24, 3, 3) -> canonical poses (F, 72)."""
     local = np.empty_like(world_rot)
@@ -133,6 +180,7 @@ def world_to_local(world_rot: np.ndarray) -> np.ndarray:
     for j in range(1, NUM_JOINTS):
         p = PARENTS[j]
         local[:, j] = np.swapaxes(world_rot[:, p], -1, -2) @ world_rot[:, j]
+    local = world_axes_to_local(local)
     return matrix_to_axis_angle(local).reshape(world_rot.shape[0], NUM_JOINTS * 3)
 
 
@@ -157,7 +205,8 @@ def mirror_poses(poses: np.ndarray) -> np.ndarray:
     """Mirror a pose sequence left <-> right (reflection through the x = 0 plane)."""
     p = np.asarray(poses, dtype=np.float64).reshape(-1, NUM_JOINTS, 3)
     out = p[:, list(MIRROR)].copy()
-    # Reflecting x: an axis-angle vector (a pseudo-vector) maps (x, y, z) -> (x, -y, -z).
+    # Reflecting x (in both frames: SMPL_TO_WORLD fixes the x axis): an axis-angle vector, a
+    # pseudo-vector, maps (x, y, z) -> (x, -y, -z).
     out[..., 1] *= -1.0
     out[..., 2] *= -1.0
     return out.reshape(-1, NUM_JOINTS * 3)

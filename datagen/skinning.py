@@ -20,9 +20,7 @@ def skinning_matrix(weights: np.ndarray, bones: np.ndarray, n_bones: int) -> sp.
     rows = np.repeat(np.arange(n_vertices), k)
     w = weights.astype(np.float64).ravel()
     keep = w != 0.0
-    return sp.csr_matrix(
-        (w[keep], (rows[keep], bones.ravel()[keep])), shape=(n_vertices, n_bones)
-    )
+    return sp.csr_matrix((w[keep], (rows[keep], bones.ravel()[keep])), shape=(n_vertices, n_bones))
 
 
 def apply_linear_skinning(skin: LinearSkinning) -> np.ndarray:
@@ -40,7 +38,9 @@ def apply_linear_skinning(skin: LinearSkinning) -> np.ndarray:
         # Blend the 3x4 transforms per vertex: (V, B) @ (B, C*12) -> (V, C, 3, 4).
         flat = np.ascontiguousarray(chunk.transpose(1, 0, 2, 3).reshape(n_bones, c * 12))
         blended = (matrix @ flat).reshape(n_vertices, c, 3, 4)
-        posed = np.einsum("vcij,vj->cvi", blended[..., :3], rest) + blended[..., 3].transpose(1, 0, 2)
+        posed = np.einsum("vcij,vj->cvi", blended[..., :3], rest) + blended[..., 3].transpose(
+            1, 0, 2
+        )
         out[start:stop] = posed.astype(np.float32)
     return out
 

@@ -126,3 +126,51 @@ class BodySequence:
     @property
     def n_frames(self) -> int:
         return int(self.poses.shape[0])
+
+
+@dataclass
+class Garment:
+    """One piece of clothing fitted to a subject in the T-pose: what the simulator starts from.
+
+    `vertices` are the initial 3D positions around the rest body; the rest metric (edge lengths,
+    areas) comes from `rest_vertices`, which differ from `vertices` only where the garment is
+    deliberately pre-stretched or shrunk (e.g. elastic bands); `uv` are the flat pattern
+    coordinates (metres) that give the fabric's warp and weft directions, when known.
+    """
+
+    name: str  # unique within the outfit
+    category: str  # tshirt, shirt, polo, top, trousers, skirt, jumpsuit, dress, sheet, ...
+    vertices: np.ndarray  # (V, 3) float64
+    faces: np.ndarray  # (T, 3) int32
+    fabric: str
+    rest_vertices: np.ndarray | None = None  # (V, 3); None: the rest metric is `vertices`
+    uv: np.ndarray | None = None  # (V, 2) pattern coordinates, metres
+    loops: dict[str, np.ndarray] = field(default_factory=dict)  # role -> ordered vertex ids
+    regions: np.ndarray | None = None  # (V,) int16 into region_names
+    region_names: tuple[str, ...] = ()
+    elastic: tuple[str, ...] = ()  # loop roles with elastic bands
+    pinned: np.ndarray | None = None  # vertex ids attached to the body (e.g. a waistband)
+    tightness: tuple[float, float] = (0.0, 0.0)
+    layer: int = 0  # 0 = innermost
+    meta: dict = field(default_factory=dict)  # shaping/cut parameters, template name, ...
+
+    @property
+    def rest(self) -> np.ndarray:
+        return self.vertices if self.rest_vertices is None else self.rest_vertices
+
+
+@dataclass
+class Outfit:
+    garments: list[Garment]
+    sewn: str | None = None  # "jumpsuit" | "dress" when two templates were stitched
+
+
+@dataclass
+class SimResult:
+    """The simulation stage's result: garment vertices at the output frame rate (lead-in frames
+    excluded), per-frame QA series and a report of what ran and what it cost."""
+
+    garment_names: list[str]
+    vertices: dict[str, np.ndarray]  # name -> (F, V, 3) float32
+    qa: dict[str, np.ndarray]  # series name -> (F,) float32
+    report: dict  # solver, substeps, iterations, effects, costs, wall time, retries

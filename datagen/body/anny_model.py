@@ -167,7 +167,10 @@ class AnnyBody:
             [JOINT_INDEX[_bone_joint(label)] for label in self.bone_labels], dtype=np.int64
         )
         self.joint_bone = np.array(
-            [self.bone_labels.index(JOINT_BONE[name]) for name in sorted(JOINT_INDEX, key=JOINT_INDEX.get)]
+            [
+                self.bone_labels.index(JOINT_BONE[name])
+                for name in sorted(JOINT_INDEX, key=JOINT_INDEX.get)
+            ]
         )
         # Part label per vertex: the part whose joints carry most of the vertex's skinning weight.
         n_parts = len(PART_NAMES)
@@ -175,8 +178,10 @@ class AnnyBody:
         part_weight = np.zeros((len(self.skin_weights), n_parts))
         np.add.at(
             part_weight,
-            (np.repeat(np.arange(len(self.skin_weights)), self.skin_weights.shape[1]),
-             part_of_bone[self.skin_bones].ravel()),
+            (
+                np.repeat(np.arange(len(self.skin_weights)), self.skin_weights.shape[1]),
+                part_of_bone[self.skin_bones].ravel(),
+            ),
             self.skin_weights.ravel(),
         )
         self.part_labels = part_weight.argmax(axis=1).astype(np.int16)
@@ -189,8 +194,9 @@ class AnnyBody:
     def _check_shape(self, shape: np.ndarray) -> np.ndarray:
         shape = np.asarray(shape, dtype=np.float64)
         if shape.shape != (len(SHAPE_NAMES),):
-            raise InputError(None, "shape", f"{len(SHAPE_NAMES)} Anny phenotypes {SHAPE_NAMES}",
-                             shape.shape)
+            raise InputError(
+                None, "shape", f"{len(SHAPE_NAMES)} Anny phenotypes {SHAPE_NAMES}", shape.shape
+            )
         for name, value in zip(SHAPE_NAMES, shape, strict=True):
             lo, hi = 0.0, 1.0
             if not (lo <= value <= hi) or not np.isfinite(value):
@@ -236,6 +242,16 @@ class AnnyBody:
         subject.offset = np.array([-root[0], -root[1], -float(t_pose[:, 2].min())])
         return subject
 
+    def default_shape(self) -> np.ndarray:
+        return NEUTRAL_SHAPE.copy()
+
+    def thinner_shape(self, shape: np.ndarray) -> np.ndarray:
+        """A thinner variant for the self-collision retry: less weight and muscle."""
+        out = np.array(shape, dtype=np.float64, copy=True)
+        out[SHAPE_NAMES.index("weight")] = max(0.0, out[SHAPE_NAMES.index("weight")] - 0.3)
+        out[SHAPE_NAMES.index("muscle")] = max(0.0, out[SHAPE_NAMES.index("muscle")] - 0.2)
+        return out
+
     # -- rest and posing -----------------------------------------------------------------------
     def rest_body(self, gender: str, shape: np.ndarray) -> RestBody:
         check_gender(gender)
@@ -256,7 +272,9 @@ class AnnyBody:
             part_names=PART_NAMES,
         )
 
-    def _transforms(self, subject: _Subject, orientations: np.ndarray, heads: np.ndarray) -> np.ndarray:
+    def _transforms(
+        self, subject: _Subject, orientations: np.ndarray, heads: np.ndarray
+    ) -> np.ndarray:
         """(F, B, 3, 4) bone transforms mapping Anny rest space to world, given bone world
         orientations (F, B, 3, 3) relative to Anny's rest and posed bone heads (F, B, 3)."""
         rot = orientations

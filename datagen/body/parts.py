@@ -103,14 +103,24 @@ def part_neighbours() -> np.ndarray:
     return nb
 
 
-# Where small intersections are expected and repairable (thesis 3.3.1: armpits and crotch).
-SOLVABLE_PAIRS = frozenset(
-    {
-        frozenset({"upperarm_l", "spine_mid"}),
-        frozenset({"upperarm_r", "spine_mid"}),
-        frozenset({"upperarm_l", "collar_l"}),
-        frozenset({"thigh_l", "thigh_r"}),
-        frozenset({"thigh_l", "spine_lower"}),
-        frozenset({"thigh_r", "spine_lower"}),
-    }
+# Where small intersections are expected and repairable (thesis 3.3.1: armpits and crotch, and
+# arms resting against the hips): an arm against the torso or a thigh, the thighs against each
+# other. Anything else (an arm against a shin, a hand in the head) is incompatible.
+_ARMS = ("upperarm_l", "upperarm_r", "forearm_l", "forearm_r")
+_ARM_TARGETS = (
+    "pelvis",
+    "spine_lower",
+    "spine_mid",
+    "chest",
+    "collar_l",
+    "collar_r",
+    "thigh_l",
+    "thigh_r",
 )
+SOLVABLE_PAIRS = frozenset(
+    {frozenset({arm, other}) for arm in _ARMS for other in _ARM_TARGETS}
+    | {frozenset({"thigh_l", "thigh_r"})}
+) - {frozenset({"upperarm_l", "collar_l"}), frozenset({"upperarm_r", "collar_r"})}
+
+# Which part yields in a repair: the first of a pair in this order moves (both thighs share).
+MOVABLE_ORDER = ("forearm_l", "forearm_r", "upperarm_l", "upperarm_r", "thigh_l", "thigh_r")

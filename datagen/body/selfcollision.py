@@ -1,0 +1,371 @@
+"""Body self-collision: detection, classification and repair (CLOTH3D thesis 3.3.1).
+
+Intersecting body volumes make the cloth solver push in two directions at once, which corrupts
+the whole garment, so the body is made intersection-free before it is simulated.
+
+- Detection: per frame, triangle pairs that intersect, between parts that are not neighbours in
+  the skeleton (datagen.body.parts) and that lie apart in the rest pose (folds within a few
+  centimetres of a joint are skinning artefacts, not self-collisions). A broad phase keeps only
+  the triangles inside the overlap of two parts' boxes; all frames are searched in one KD-tree
+  per part pair, each frame shifted far apart along x.
+- Classification: per frame and part pair, the intersection's extent and depth. Small ones between
+  parts that meet at the armpits and the crotch are solvable; large ones, or ones between parts
+  that should never meet (arm through torso, leg through leg), reject the sequence with the frame
+  range and a reason. Parts dropped from the collider (hands, forearms the outfit never reaches)
+  are ignored.
+- Repair: the limb is pushed out of the torso (or the two thighs apart) along the contact normal,
+  with a smooth falloff around the contact, until the gap is at least `gap` (4 mm).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from datagen.body.parts import (
+    MOVABLE_ORDER,
+    PART_INDEX,
+    PART_NAMES,
+    SOLVABLE_PAIRS,
+    part_neighbours,
+)
+
+LOCAL_RADIUS = 0.05  # metres: triangles this close in the rest pose may fold into each other
+_FRAME_SHIFT = 100.0  # metres between frames in the batched KD-tree
+
+
+@dataclass
+class Contact:
+    """The intersections between two parts in one frame."""
+
+    frame: int
+    part_a: int
+    part_b: int
+    tri_a: np.ndarray  # triangle indices of part a involved
+    tri_b: np.ndarray
+    n_pairs: int
+    extent: float  # metres: diagonal of the box around the intersecting triangles
+    depth: float  # metres: how far one part reaches behind the other's surface
+
+    @property
+    def pair_name(self) -> str:
+        a, b = sorted((PART_NAMES[self.part_a], PART_NAMES[self.part_b]))
+        return f"{a}/{b}"
+
+
+class SelfCollisionDetector:
+    """Finds body self-intersections. Built once per body topology (faces, part labels)."""
+
+    def __init__(
+        self,
+        faces: np.ndarray,
+        part_labels: np.ndarray,
+        rest_vertices: np.ndarray,
+        ignore_parts: frozenset[str] = frozenset(),
+    ) -> None:
+        self.faces = np.asarray(faces, dtype=np.int64)
+        labels = np.asarray(part_labels)
+        # A triangle belongs to the part most of its vertices belong to.
+        fl = labels[self.faces]
+        self.tri_part = np.where(fl[:, 1] == fl[:, 2], fl[:, 1], fl[:, 0]).astype(np.int64)
+        self.rest_centroid = rest_vertices[self.faces].mean(axis=1)
+        self.part_tris = [np.flatnonzero(self.tri_part == p) for p in range(len(PART_NAMES))]
+        neighbours = part_neighbours()
+        ignored = {PART_INDEX[p] for p in ignore_parts}
+        self.pairs = [
+            (a, b)
+            for a in range(len(PART_NAMES))
+            for b in range(a + 1, len(PART_NAMES))
+            if not neighbours[a, b]
+            and a not in ignored
+            and b not in ignored
+            and len(self.part_tris[a])
+            and len(self.part_tris[b])
+        ]
+
+    def detect(self, vertices: np.ndarray, frames: np.ndarray | None = None) -> list[Contact]:
+        """Contacts in posed vertices (F, V, 3); `frames` labels them (default 0..F-1)."""
+        vertices = np.asarray(vertices)
+        n_frames = vertices.shape[0]
+        frame_ids = np.arange(n_frames) if frames is None else np.asarray(frames)
+        tri = vertices[:, self.faces].astype(np.float64)  # (F, T, 3, 3)
+        tmin = tri.min(axis=2)
+        tmax = tri.max(axis=2)
+        contacts: list[Contact] = []
+        for a, b in self.pairs:
+            ta, tb = self.part_tris[a], self.part_tris[b]
+            amin, amax = tmin[:, ta].min(axis=1), tmax[:, ta].max(axis=1)  # (F, 3)
+            bmin, bmax = tmin[:, tb].min(axis=1), tmax[:, tb].max(axis=1)
+            lo = np.maximum(amin, bmin)
+            hi = np.minimum(amax, bmax)
+            overlap = np.all(lo <= hi, axis=1)
+            if not overlap.any():
+                continue
+            fr = np.flatnonzero(overlap)
+            # Triangles of each part whose box touches the overlap box, per frame.
+            sel_a = np.all(
+                (tmax[fr][:, ta] >= lo[fr, None]) & (tmin[fr][:, ta] <= hi[fr, None]), axis=2
+            )
+            sel_b = np.all(
+                (tmax[fr][:, tb] >= lo[fr, None]) & (tmin[fr][:, tb] <= hi[fr, None]), axis=2
+            )
+            fa, ia = np.nonzero(sel_a)
+            fb, ib = np.nonzero(sel_b)
+            if len(fa) == 0 or len(fb) == 0:
+                continue
+            pairs = self._candidate_pairs(tri, fr[fa], ta[ia], fr[fb], tb[ib])
+            if len(pairs) == 0:
+                continue
+            pf, pa, pb = pairs.T
+            hit = triangles_intersect(tri[pf, pa], tri[pf, pb])
+            if not hit.any():
+                continue
+            pf, pa, pb = pf[hit], pa[hit], pb[hit]
+            for f in np.unique(pf):
+                m = pf == f
+                contacts.append(self._contact(tri[f], int(frame_ids[f]), a, b, pa[m], pb[m]))
+        contacts.sort(key=lambda c: (c.frame, c.part_a, c.part_b))
+        return contacts
+
+    def _candidate_pairs(self, tri, fa, ia, fb, ib) -> np.ndarray:
+        """(N, 3) rows (frame, tri_a, tri_b) whose bounding spheres overlap and that were apart
+        in the rest pose."""
+        ca = tri[fa, ia].mean(axis=1)
+        cb = tri[fb, ib].mean(axis=1)
+        ra = np.linalg.norm(tri[fa, ia] - ca[:, None], axis=2).max(axis=1)
+        rb = np.linalg.norm(tri[fb, ib] - cb[:, None], axis=2).max(axis=1)
+        shift_a = ca.copy()
+        shift_a[:, 0] += fa * _FRAME_SHIFT
+        shift_b = cb.copy()
+        shift_b[:, 0] += fb * _FRAME_SHIFT
+        tree = cKDTree(shift_b)
+        radius = float(ra.max() + rb.max())
+        neighbours = tree.query_ball_point(shift_a, r=radius)
+        counts = np.fromiter((len(n) for n in neighbours), dtype=np.int64, count=len(neighbours))
+        if counts.sum() == 0:
+            return np.empty((0, 3), dtype=np.int64)
+        rows = np.repeat(np.arange(len(neighbours)), counts)
+        cols = np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbours if n])
+        close = np.linalg.norm(ca[rows] - cb[cols], axis=1) <= ra[rows] + rb[cols]
+        rows, cols = rows[close], cols[close]
+        far_at_rest = (
+            np.linalg.norm(self.rest_centroid[ia[rows]] - self.rest_centroid[ib[cols]], axis=1)
+            > LOCAL_RADIUS
+        )
+        rows, cols = rows[far_at_rest], cols[far_at_rest]
+        return np.stack([fa[rows], ia[rows], ib[cols]], axis=1)
+
+    def _contact(self, tri_f, frame, a, b, pa, pb) -> Contact:
+        pts = np.concatenate([tri_f[pa].reshape(-1, 3), tri_f[pb].reshape(-1, 3)])
+        extent = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+        depth = self._depth(tri_f, a, b, pts.mean(axis=0), 0.5 * extent + 0.03)
+        return Contact(frame, a, b, np.unique(pa), np.unique(pb), len(pa), extent, depth)
+
+    def _depth(self, tri_f, a: int, b: int, centre: np.ndarray, radius: float) -> float:
+        """How far the vertices of either part near the contact reach inside the other's local
+        surface (signed distance to the closest triangle of its patch); the larger of the two."""
+        depth = 0.0
+        cent = tri_f.mean(axis=1)
+        near = np.linalg.norm(cent - centre, axis=1) < radius
+        for src, dst in ((a, b), (b, a)):
+            src_tris = self.part_tris[src][near[self.part_tris[src]]]
+            dst_tris = self.part_tris[dst][near[self.part_tris[dst]]]
+            if len(src_tris) == 0 or len(dst_tris) == 0:
+                continue
+            pts = np.unique(tri_f[src_tris].reshape(-1, 3), axis=0)
+            sd, _ = _signed_distance(pts, tri_f[dst_tris])
+            depth = max(depth, float(np.max(-sd, initial=0.0)))
+        return depth
+
+
+def triangles_intersect(t1: np.ndarray, t2: np.ndarray) -> np.ndarray:
+    """(N,) bool: whether triangle pairs (N, 3, 3) x (N, 3, 3) intersect (non-coplanar case).
+
+    Two triangles intersect iff an edge of one crosses the other triangle.
+    """
+    hit = np.zeros(len(t1), dtype=bool)
+    for a, b in ((t1, t2), (t2, t1)):
+        for i in range(3):
+            p = a[:, i]
+            q = a[:, (i + 1) % 3]
+            hit |= _segment_hits_triangle(p, q, b)
+    return hit
+
+
+def _segment_hits_triangle(p: np.ndarray, q: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Moller-Trumbore with the ray parameter restricted to the segment [p, q]."""
+    d = q - p
+    e1 = tri[:, 1] - tri[:, 0]
+    e2 = tri[:, 2] - tri[:, 0]
+    h = np.cross(d, e2)
+    det = np.einsum("ij,ij->i", e1, h)
+    ok = np.abs(det) > 1e-18
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    s = p - tri[:, 0]
+    u = inv * np.einsum("ij,ij->i", s, h)
+    qv = np.cross(s, e1)
+    v = inv * np.einsum("ij,ij->i", d, qv)
+    t = inv * np.einsum("ij,ij->i", e2, qv)
+    return ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
+
+
+# -- classification ----------------------------------------------------------------------------
+@dataclass
+class Verdict:
+    solvable: list[Contact]
+    fatal: list[Contact]
+
+    def reason(self) -> tuple[str, tuple[int, int]]:
+        """A one-line reason (the deepest fatal intersection) and the frames of that pair."""
+        worst = max(self.fatal, key=lambda c: (c.depth, c.extent))
+        same = [c for c in self.fatal if c.pair_name == worst.pair_name]
+        frames = (min(c.frame for c in same), max(c.frame for c in same))
+        pair = frozenset(worst.pair_name.split("/"))
+        kind = "incompatible parts" if pair not in SOLVABLE_PAIRS else "too large"
+        return (
+            f"body self-intersection {worst.pair_name} ({kind}: extent "
+            f"{worst.extent * 100:.1f} cm, depth {worst.depth * 100:.1f} cm)",
+            frames,
+        )
+
+
+def classify(contacts: list[Contact], max_extent: float, max_depth: float) -> Verdict:
+    solvable, fatal = [], []
+    for c in contacts:
+        pair = frozenset({PART_NAMES[c.part_a], PART_NAMES[c.part_b]})
+        if pair in SOLVABLE_PAIRS and c.extent <= max_extent and c.depth <= max_depth:
+            solvable.append(c)
+        else:
+            fatal.append(c)
+    return Verdict(solvable, fatal)
+
+
+# -- repair ------------------------------------------------------------------------------------
+def _signed_distance(points: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distance of points to the closest of `tris` (outward = triangle normal side) and
+    the normal of that triangle. Brute force over a local patch (a few hundred triangles)."""
+    from trimesh.triangles import closest_point
+
+    n_p, n_t = len(points), len(tris)
+    normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True) + 1e-20
+    best = np.full(n_p, np.inf)
+    best_sd = np.zeros(n_p)
+    best_n = np.zeros((n_p, 3))
+    chunk = max(1, 200_000 // max(n_t, 1))
+    for s in range(0, n_p, chunk):
+        pts = points[s : s + chunk]
+        rep_pts = np.repeat(pts, n_t, axis=0)
+        rep_tris = np.tile(tris, (len(pts), 1, 1))
+        cp = closest_point(rep_tris, rep_pts).reshape(len(pts), n_t, 3)
+        diff = pts[:, None] - cp
+        dist = np.linalg.norm(diff, axis=2)
+        k = dist.argmin(axis=1)
+        rows = np.arange(len(pts))
+        sign = np.sign(np.einsum("pk,pk->p", diff[rows, k], normals[k]))
+        sign[sign == 0] = 1.0
+        best[s : s + chunk] = dist[rows, k]
+        best_sd[s : s + chunk] = sign * dist[rows, k]
+        best_n[s : s + chunk] = normals[k]
+    return best_sd, best_n
+
+
+def repair_contact(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    part_labels: np.ndarray,
+    contact: Contact,
+    gap: float,
+    rest_vertices: np.ndarray,
+    adjacency_radius: float = 0.04,
+) -> dict[int, np.ndarray]:
+    """Offsets {vertex: (3,)} that separate the two parts of `contact` by at least `gap`.
+
+    The part that yields (datagen.body.parts.MOVABLE_ORDER: forearm before upper arm before
+    thigh; both thighs share the push for a crotch contact) moves along the contact normal with
+    a smooth falloff around the contact, so the surface stays smooth. Only vertices that lie
+    apart from the other part in the rest pose are held to the gap (the skin where the parts
+    join is the same surface). `vertices` is one frame (V, 3) and is not modified.
+    """
+    from scipy.spatial import cKDTree
+
+    name_a, name_b = PART_NAMES[contact.part_a], PART_NAMES[contact.part_b]
+    rank = {name: i for i, name in enumerate(MOVABLE_ORDER)}
+    tri_a, tri_b = contact.tri_a, contact.tri_b
+    if rank.get(name_b, 99) < rank.get(name_a, 99):
+        name_a, name_b = name_b, name_a
+        tri_a, tri_b = tri_b, tri_a
+    # Thighs against each other share the push; otherwise only the higher-ranked part moves.
+    both = {name_a, name_b} == {"thigh_l", "thigh_r"}
+    pa, pb = PART_INDEX[name_a], PART_INDEX[name_b]
+    labels = np.asarray(part_labels)
+
+    v = vertices.astype(np.float64)
+    tris = v[faces]
+    center = np.concatenate([tris[tri_a].reshape(-1, 3), tris[tri_b].reshape(-1, 3)]).mean(axis=0)
+    core = 0.5 * contact.extent
+    radius = core + adjacency_radius
+    cent = tris.mean(axis=1)
+    near = np.linalg.norm(cent - center, axis=1) < radius + 0.03
+    tri_part = labels[faces[:, 0]]
+    patch_b = np.flatnonzero(near & (tri_part == pb))
+    patch_a = np.flatnonzero(near & (tri_part == pa))
+    if len(patch_b) == 0 or len(patch_a) == 0:
+        return {}
+    normal = np.cross(tris[tri_b, 1] - tris[tri_b, 0], tris[tri_b, 2] - tris[tri_b, 0]).sum(axis=0)
+    n = normal / (np.linalg.norm(normal) + 1e-20)
+    verts_a = np.unique(faces[patch_a])
+    verts_a = verts_a[labels[verts_a] == pa]
+    verts_b = np.unique(faces[patch_b])
+    verts_b = verts_b[labels[verts_b] == pb]
+    # Held to the gap: vertices of each part away from the other part in the rest pose.
+    held_a = cKDTree(rest_vertices[verts_b]).query(rest_vertices[verts_a])[0] > LOCAL_RADIUS
+    held_b = cKDTree(rest_vertices[verts_a]).query(rest_vertices[verts_b])[0] > LOCAL_RADIUS
+
+    def falloff(points):
+        d = np.linalg.norm(points - center, axis=1)
+        s = np.clip((radius - d) / max(radius - core, 1e-6), 0.0, 1.0)
+        return s * s * (3 - 2 * s)
+
+    wa = falloff(v[verts_a])
+    wb = falloff(v[verts_b])
+    limit = contact.depth + gap + 0.02  # never push further than the intersection could need
+    push = 0.0
+    offsets_a = np.zeros((len(verts_a), 3))
+    offsets_b = np.zeros((len(verts_b), 3))
+    for _ in range(8):
+        moved = v.copy()
+        moved[verts_a] += offsets_a
+        moved[verts_b] += offsets_b
+        sd, _ = _signed_distance(moved[verts_a], moved[faces[patch_b]])
+        # Only vertices inside the contact region (where the push is at least half) must meet
+        # the gap; the falloff zone follows smoothly.
+        short = np.where(held_a & (wa >= 0.5), gap - sd, 0.0)
+        if both:
+            sd_b, _ = _signed_distance(moved[verts_b], moved[faces[patch_a]])
+            short_b = np.where(held_b & (wb >= 0.5), gap - sd_b, 0.0)
+        else:
+            short_b = np.zeros(len(verts_b))
+        worst = max(
+            float(np.max(short / np.maximum(wa, 0.5), initial=0.0)),
+            float(np.max(short_b / np.maximum(wb, 0.5), initial=0.0)),
+        )
+        if worst <= 1e-5 or push >= limit:
+            break
+        push = min(push + worst, limit)
+        if both:
+            offsets_a = (0.5 * push * wa)[:, None] * n
+            offsets_b = (-0.5 * push * wb)[:, None] * n
+        else:
+            offsets_a = (push * wa)[:, None] * n
+    out: dict[int, np.ndarray] = {}
+    for i, off in zip(verts_a, offsets_a, strict=True):
+        if np.any(off != 0):
+            out[int(i)] = off
+    if both:
+        for i, off in zip(verts_b, offsets_b, strict=True):
+            if np.any(off != 0):
+                out[int(i)] = out.get(int(i), 0) + off
+    return out

@@ -1,0 +1,157 @@
+"""The body stage: subject + motion -> a self-collision-free BodySequence (or a rejection)."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+
+import numpy as np
+
+from datagen.body.base import BodyModel
+from datagen.body.parts import PART_INDEX
+from datagen.body.selfcollision import SelfCollisionDetector, classify, repair_contact
+from datagen.errors import InputError, RejectedSequence
+from datagen.motion.timing import add_lead_in, retarget_root
+from datagen.recipe import BodyConfig
+from datagen.spec import SubjectSpec
+from datagen.types import BodySequence, Motion, RestBody, SelfCollisionReport
+
+_DETECTORS: dict[tuple, SelfCollisionDetector] = {}
+
+
+def shape_vector(model: BodyModel, subject: SubjectSpec) -> np.ndarray:
+    """The subject's shape parameters in the model's order; every name must be known."""
+    names = tuple(model.shape_names)
+    unknown = set(subject.shape) - set(names)
+    if unknown:
+        raise InputError(
+            None,
+            f"subject.shape.{sorted(unknown)[0]}",
+            f"a shape parameter of {model.name} ({', '.join(names)})",
+            "unknown",
+        )
+    defaults = getattr(model, "default_shape", None)
+    out = np.zeros(len(names)) if defaults is None else np.array(defaults(), dtype=np.float64)
+    for i, name in enumerate(names):
+        if name in subject.shape:
+            out[i] = subject.shape[name]
+    return out
+
+
+def _detector(rest: RestBody, ignore: frozenset[str]) -> SelfCollisionDetector:
+    # Keyed by topology; rest positions only decide which triangles are "local" to each other,
+    # which the shape barely changes, so one detector serves all subjects of a model.
+    key = (rest.model, rest.faces.shape, ignore)
+    det = _DETECTORS.get(key)
+    if det is None:
+        det = SelfCollisionDetector(rest.faces, rest.part_labels, rest.vertices, ignore)
+        _DETECTORS[key] = det
+    return det
+
+
+def repair_self_collisions(
+    vertices: np.ndarray, rest: RestBody, config: BodyConfig, ignore: frozenset[str]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, SelfCollisionReport]:
+    """Detect, classify and repair; returns sparse offsets (frames, vertices, offsets) and the
+    report, or raises RejectedSequence. `vertices` (F, V, 3) is modified in place."""
+    det = _detector(rest, ignore)
+    contacts = det.detect(vertices)
+    report = SelfCollisionReport(frames_checked=len(vertices), dropped_parts=tuple(sorted(ignore)))
+    report.intersecting_pairs = sum(c.n_pairs for c in contacts)
+    report.frames_with_contact = len({c.frame for c in contacts})
+    by_pair: dict[str, int] = defaultdict(int)
+    for c in contacts:
+        by_pair[c.pair_name] += c.n_pairs
+    report.by_part_pair = dict(sorted(by_pair.items()))
+    verdict = classify(contacts, config.max_solvable_extent, config.max_solvable_depth)
+    if verdict.fatal:
+        reason, frames = verdict.reason()
+        raise RejectedSequence("body", reason, frames)
+    offsets: dict[tuple[int, int], np.ndarray] = {}
+    pending = verdict.solvable
+    for _ in range(3):  # a repair can uncover a neighbouring contact; a few passes settle it
+        if not pending:
+            break
+        for contact in pending:
+            frame_vertices = vertices[contact.frame]
+            for v, off in repair_contact(
+                frame_vertices,
+                rest.faces,
+                rest.part_labels,
+                contact,
+                config.repair_gap,
+                rest.vertices,
+            ).items():
+                frame_vertices[v] += off.astype(np.float32)
+                key = (contact.frame, v)
+                offsets[key] = offsets.get(key, 0.0) + off
+        frames = np.unique([c.frame for c in pending])
+        pending = det.detect(vertices[frames], frames=frames)
+    report.residual_pairs = sum(c.n_pairs for c in pending)
+    if offsets:
+        keys = sorted(offsets)
+        rep_f = np.array([k[0] for k in keys], dtype=np.int32)
+        rep_v = np.array([k[1] for k in keys], dtype=np.int32)
+        rep_o = np.array([offsets[k] for k in keys], dtype=np.float32)
+        report.repaired_vertices = len(keys)
+        report.max_repair_offset = float(np.linalg.norm(rep_o, axis=1).max())
+    else:
+        rep_f = np.zeros(0, np.int32)
+        rep_v = np.zeros(0, np.int32)
+        rep_o = np.zeros((0, 3), np.float32)
+    return rep_f, rep_v, rep_o, report
+
+
+def build_body_sequence(
+    subject: SubjectSpec,
+    motion: Motion,
+    lead_in: int,
+    model: BodyModel,
+    config: BodyConfig,
+    dropped_parts: frozenset[str] = frozenset(),
+) -> BodySequence:
+    """Pose the subject through `motion` (reference skeleton, no lead-in yet), add the lead-in
+    from rest, and repair or reject body self-collisions. Retries with a thinner body when the
+    config allows it; the stored shape is the one actually used."""
+    unknown = [p for p in dropped_parts if p not in PART_INDEX]
+    if unknown:
+        raise InputError(None, "dropped_parts", "body part names", unknown)
+    shape = shape_vector(model, subject)
+    last_error: RejectedSequence | None = None
+    for attempt in range(config.thinner_retries + 1):
+        if attempt > 0:
+            thinner = getattr(model, "thinner_shape", None)
+            if thinner is None:
+                break
+            shape = thinner(shape)
+        rest = model.rest_body(subject.gender, shape)
+        moved = add_lead_in(retarget_root(motion, rest.pelvis_height), lead_in)
+        posed = model.pose(rest, moved.poses, moved.trans)
+        vertices = posed.vertices
+        try:
+            rep_f, rep_v, rep_o, report = repair_self_collisions(
+                vertices, rest, config, dropped_parts
+            )
+        except RejectedSequence as exc:
+            last_error = exc
+            continue
+        part_of_face = rest.part_labels[rest.faces[:, 0]]
+        dropped_ids = [PART_INDEX[p] for p in dropped_parts]
+        return BodySequence(
+            rest=rest,
+            poses=moved.poses,
+            trans=moved.trans,
+            fps=moved.fps,
+            action=motion.label,
+            motion_source=motion.source,
+            lead_in_frames=lead_in,
+            joints=posed.joints,
+            vertices=vertices,
+            skinning=posed.skinning,
+            repair_frames=rep_f,
+            repair_vertices=rep_v,
+            repair_offsets=rep_o,
+            self_collision=report,
+            collider_face_mask=~np.isin(part_of_face, dropped_ids),
+        )
+    assert last_error is not None
+    raise last_error

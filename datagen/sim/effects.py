@@ -1,0 +1,117 @@
+"""Physical effects and the rules that derive a scene's effects from its content.
+
+The rules (docs/simulator.md, "Effects"):
+- gravity, stretch, shear, bending, air drag: always, for any cloth;
+- body collision: when there is a body; friction: with body collision and a fabric friction > 0;
+- garment-garment collision: only when the outfit has two or more garments;
+- self-collision: only for loose garments that can fold onto themselves (skirts, dresses, and any
+  garment with a loose fit, tightness < -0.5 on the size axis); a tight top needs none;
+- elastic rings: only when a garment has elastic loops;
+- pins: only when a garment has pinned vertices (waistbands attached to the body);
+- wind: only when the scene asks for it.
+`--effects all` turns everything on that the scene can support; an explicit list overrides.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+from datagen.errors import InputError
+
+EFFECT_NAMES = (
+    "gravity",
+    "stretch",
+    "shear",
+    "bending",
+    "body_collision",
+    "friction",
+    "garment_collision",
+    "self_collision",
+    "elastic",
+    "pins",
+    "air_drag",
+    "wind",
+)
+LOOSE_CATEGORIES = frozenset({"skirt", "dress"})
+LOOSE_TIGHTNESS = -0.5
+
+
+@dataclass(frozen=True)
+class Effects:
+    gravity: bool = True
+    stretch: bool = True
+    shear: bool = True
+    bending: bool = True
+    body_collision: bool = True
+    friction: bool = True
+    garment_collision: bool = False
+    self_collision: bool = False
+    elastic: bool = False
+    pins: bool = False
+    air_drag: bool = True
+    wind: bool = False
+
+    def enabled(self) -> list[str]:
+        return [f.name for f in fields(self) if getattr(self, f.name)]
+
+
+@dataclass(frozen=True)
+class SceneContent:
+    """What the rules look at."""
+
+    has_body: bool
+    n_garments: int
+    categories: tuple[str, ...]
+    tightness: tuple[tuple[float, float], ...]
+    has_elastic: bool
+    has_pins: bool
+    wants_wind: bool
+    max_friction: float
+
+
+def auto_effects(scene: SceneContent) -> Effects:
+    loose = any(
+        cat in LOOSE_CATEGORIES or tight[0] < LOOSE_TIGHTNESS
+        for cat, tight in zip(scene.categories, scene.tightness, strict=True)
+    )
+    return Effects(
+        body_collision=scene.has_body,
+        friction=scene.has_body and scene.max_friction > 0,
+        garment_collision=scene.n_garments >= 2,
+        self_collision=loose,
+        elastic=scene.has_elastic,
+        pins=scene.has_pins,
+        wind=scene.wants_wind,
+    )
+
+
+def resolve_effects(request: str | tuple[str, ...] | list[str], scene: SceneContent) -> Effects:
+    """'auto' applies the rules, 'all' enables every supported effect, a list is taken as is
+    (effects the scene cannot have, like body collision without a body, are an error)."""
+    if isinstance(request, str) and request == "auto":
+        return auto_effects(scene)
+    if isinstance(request, str) and request == "all":
+        return Effects(
+            body_collision=scene.has_body,
+            friction=scene.has_body,
+            garment_collision=scene.n_garments >= 2,
+            self_collision=True,
+            elastic=scene.has_elastic,
+            pins=scene.has_pins,
+            wind=True,
+        )
+    names = request.split(",") if isinstance(request, str) else list(request)
+    names = [n.strip() for n in names if n.strip()]
+    unknown = [n for n in names if n not in EFFECT_NAMES]
+    if unknown:
+        raise InputError(
+            None, "effects", f"auto, all, or a list of {', '.join(EFFECT_NAMES)}", unknown[0]
+        )
+    chosen = set(names)
+    if "body_collision" in chosen and not scene.has_body:
+        raise InputError(
+            None, "effects", "body_collision only in a scene with a body", "body_collision"
+        )
+    if "friction" in chosen and "body_collision" not in chosen:
+        raise InputError(None, "effects", "friction together with body_collision", "friction")
+    return Effects(**{name: name in chosen for name in EFFECT_NAMES})

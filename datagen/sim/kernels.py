@@ -1,0 +1,874 @@
+"""Taichi kernels of the cloth solvers. Data lives in ndarrays owned by the solver objects.
+
+Every effect has its own kernel (or compile-time branch), so an effect that a scene does not need
+is neither compiled nor launched. Constraint sweeps come in two flavours: Gauss-Seidel (serial,
+exact, the CPU default) and Jacobi (parallel-safe, for GPU backends).
+"""
+
+import taichi as ti
+
+vec3 = ti.math.vec3
+V3 = ti.types.ndarray(dtype=vec3, ndim=1)
+V4 = ti.types.ndarray(dtype=ti.math.vec4, ndim=1)
+F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
+I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+I2 = ti.types.ndarray(dtype=ti.math.ivec2, ndim=1)
+I3 = ti.types.ndarray(dtype=ti.math.ivec3, ndim=1)
+I4 = ti.types.ndarray(dtype=ti.math.ivec4, ndim=1)
+
+
+# -- geometry ----------------------------------------------------------------------------------
+@ti.func
+def closest_on_triangle(p: vec3, a: vec3, b: vec3, c: vec3) -> ti.math.vec4:
+    """Barycentric (u, v, w) of the closest point of triangle abc to p, and its squared
+    distance (Ericson, Real-Time Collision Detection 5.1.5, written from the math)."""
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = ab.dot(ap)
+    d2 = ac.dot(ap)
+    bary = vec3(1.0, 0.0, 0.0)
+    bp = p - b
+    d3 = ab.dot(bp)
+    d4 = ac.dot(bp)
+    cp = p - c
+    d5 = ab.dot(cp)
+    d6 = ac.dot(cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    if d1 <= 0.0 and d2 <= 0.0:
+        bary = vec3(1.0, 0.0, 0.0)
+    elif d3 >= 0.0 and d4 <= d3:
+        bary = vec3(0.0, 1.0, 0.0)
+    elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        t = d1 / (d1 - d3)
+        bary = vec3(1.0 - t, t, 0.0)
+    elif d6 >= 0.0 and d5 <= d6:
+        bary = vec3(0.0, 0.0, 1.0)
+    elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        t = d2 / (d2 - d6)
+        bary = vec3(1.0 - t, 0.0, t)
+    elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        bary = vec3(0.0, 1.0 - t, t)
+    else:
+        denom = 1.0 / (va + vb + vc)
+        v = vb * denom
+        w = vc * denom
+        bary = vec3(1.0 - v - w, v, w)
+    q = bary[0] * a + bary[1] * b + bary[2] * c
+    return ti.math.vec4(bary[0], bary[1], bary[2], (p - q).norm_sqr())
+
+
+@ti.func
+def plane_barycentric(p: vec3, a: vec3, b: vec3, c: vec3) -> vec3:
+    """Barycentric coordinates of p projected onto the plane of abc (may be negative)."""
+    v0 = b - a
+    v1 = c - a
+    v2 = p - a
+    d00 = v0.dot(v0)
+    d01 = v0.dot(v1)
+    d11 = v1.dot(v1)
+    d20 = v2.dot(v0)
+    d21 = v2.dot(v1)
+    den = d00 * d11 - d01 * d01
+    out = vec3(1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0)
+    if den > 1e-20:
+        v = (d11 * d20 - d01 * d21) / den
+        w = (d00 * d21 - d01 * d20) / den
+        out = vec3(1.0 - v - w, v, w)
+    return out
+
+
+@ti.func
+def lerp3(a: vec3, b: vec3, s: ti.f32) -> vec3:
+    return a + s * (b - a)
+
+
+# -- integration -------------------------------------------------------------------------------
+@ti.func
+def predict_one(
+    i: ti.i32,
+    x: V3,
+    xp: V3,
+    v: V3,
+    w: F1,
+    drag: F1,
+    gravity: vec3,
+    wind: vec3,
+    h: ti.f32,
+    use_gravity: ti.template(),
+    use_air: ti.template(),
+):
+    """Start of a substep: remember positions, apply external forces, move ballistically."""
+    xp[i] = x[i]
+    if w[i] > 0.0:
+        vi = v[i]
+        if ti.static(use_air):
+            # Linear drag relative to the air, integrated implicitly (unconditionally stable).
+            vi = wind + (vi - wind) / (1.0 + h * drag[i] * w[i])
+        if ti.static(use_gravity):
+            vi += h * gravity
+        v[i] = vi
+        x[i] += h * vi
+
+
+@ti.kernel
+def predict(
+    x: V3,
+    xp: V3,
+    v: V3,
+    w: F1,
+    drag: F1,
+    gravity: vec3,
+    wind: vec3,
+    h: ti.f32,
+    use_gravity: ti.template(),
+    use_air: ti.template(),
+):
+    for i in x:
+        predict_one(i, x, xp, v, w, drag, gravity, wind, h, use_gravity, use_air)
+
+
+@ti.func
+def finish_one(i: ti.i32, x: V3, xp: V3, v: V3, w: F1, contact_n: V3, contact_v: V3, h: ti.f32):
+    """End of a substep: velocities from positions; contacts do not bounce (inelastic)."""
+    vi = (x[i] - xp[i]) / h
+    if w[i] > 0.0:
+        n = contact_n[i]
+        if n.norm_sqr() > 0.0:
+            vn = (vi - contact_v[i]).dot(n)
+            if vn > 0.0:
+                vi -= vn * n
+    v[i] = vi
+
+
+@ti.kernel
+def finish(x: V3, xp: V3, v: V3, w: F1, contact_n: V3, contact_v: V3, h: ti.f32):
+    for i in x:
+        finish_one(i, x, xp, v, w, contact_n, contact_v, h)
+
+
+# -- XPBD constraints --------------------------------------------------------------------------
+@ti.kernel
+def clear_lambda(lam: F1, lam_b: V3):
+    for e in lam:
+        lam[e] = 0.0
+    for b in lam_b:
+        lam_b[b] = vec3(0.0)
+
+
+@ti.func
+def spring_delta(
+    x: V3,
+    xp: V3,
+    w: F1,
+    springs: I2,
+    rest: F1,
+    comp_t: F1,
+    comp_c: F1,
+    beta: F1,
+    lam: F1,
+    e: ti.i32,
+    h: ti.f32,
+) -> ti.math.vec4:
+    """XPBD update of spring e: (dlambda * n, dlambda) with n from x_i to x_j."""
+    i = springs[e][0]
+    j = springs[e][1]
+    out = ti.math.vec4(0.0)
+    wsum = w[i] + w[j]
+    d = x[j] - x[i]
+    length = d.norm()
+    if wsum > 0.0 and length > 1e-9:
+        n = d / length
+        c = length - rest[e]
+        alpha = comp_t[e]
+        if c < 0.0:
+            alpha = comp_c[e]
+        alpha /= h * h
+        gamma = beta[e] / h
+        rate = n.dot((x[j] - xp[j]) - (x[i] - xp[i]))
+        dl = (-c - alpha * lam[e] - gamma * rate) / ((1.0 + gamma) * wsum + alpha)
+        out = ti.math.vec4(dl * n, dl)
+    return out
+
+
+@ti.func
+def spring_gs_one(
+    e: ti.i32,
+    x: V3,
+    xp: V3,
+    w: F1,
+    springs: I2,
+    rest: F1,
+    comp_t: F1,
+    comp_c: F1,
+    beta: F1,
+    lam: F1,
+    h: ti.f32,
+    omega: ti.f32,
+):
+    r = omega * spring_delta(x, xp, w, springs, rest, comp_t, comp_c, beta, lam, e, h)
+    lam[e] += r[3]
+    i = springs[e][0]
+    j = springs[e][1]
+    dx = vec3(r[0], r[1], r[2])
+    x[i] -= w[i] * dx
+    x[j] += w[j] * dx
+
+
+@ti.kernel
+def springs_gauss_seidel(
+    x: V3,
+    xp: V3,
+    w: F1,
+    springs: I2,
+    rest: F1,
+    comp_t: F1,
+    comp_c: F1,
+    beta: F1,
+    lam: F1,
+    h: ti.f32,
+    reverse: ti.i32,
+    omega: ti.f32,
+):
+    n_springs = springs.shape[0]
+    ti.loop_config(serialize=True)
+    for k in range(n_springs):
+        e = k
+        if reverse != 0:
+            e = n_springs - 1 - k
+        spring_gs_one(e, x, xp, w, springs, rest, comp_t, comp_c, beta, lam, h, omega)
+
+
+@ti.func
+def bend_delta(
+    x: V3, xp: V3, w: F1, bends: I4, kw: V4, comp: F1, beta: F1, lam_b: V3, b: ti.i32, h: ti.f32
+) -> vec3:
+    """XPBD update of the (linear, vector-valued) bending constraint b: its dlambda."""
+    s = bends[b]
+    k = kw[b]
+    c = k[0] * x[s[0]] + k[1] * x[s[1]] + k[2] * x[s[2]] + k[3] * x[s[3]]
+    wsum = (
+        k[0] * k[0] * w[s[0]]
+        + k[1] * k[1] * w[s[1]]
+        + k[2] * k[2] * w[s[2]]
+        + k[3] * k[3] * w[s[3]]
+    )
+    out = vec3(0.0)
+    if wsum > 0.0:
+        alpha = comp[b] / (h * h)
+        gamma = beta[b] / h
+        rate = (
+            k[0] * (x[s[0]] - xp[s[0]])
+            + k[1] * (x[s[1]] - xp[s[1]])
+            + k[2] * (x[s[2]] - xp[s[2]])
+            + k[3] * (x[s[3]] - xp[s[3]])
+        )
+        out = (-c - alpha * lam_b[b] - gamma * rate) / ((1.0 + gamma) * wsum + alpha)
+    return out
+
+
+@ti.func
+def bend_gs_one(
+    b: ti.i32,
+    x: V3,
+    xp: V3,
+    w: F1,
+    bends: I4,
+    kw: V4,
+    comp: F1,
+    beta: F1,
+    lam_b: V3,
+    h: ti.f32,
+    omega: ti.f32,
+):
+    dl = omega * bend_delta(x, xp, w, bends, kw, comp, beta, lam_b, b, h)
+    lam_b[b] += dl
+    s = bends[b]
+    k = kw[b]
+    for q in ti.static(range(4)):
+        x[s[q]] += w[s[q]] * k[q] * dl
+
+
+@ti.kernel
+def bends_gauss_seidel(
+    x: V3,
+    xp: V3,
+    w: F1,
+    bends: I4,
+    kw: V4,
+    comp: F1,
+    beta: F1,
+    lam_b: V3,
+    h: ti.f32,
+    reverse: ti.i32,
+    omega: ti.f32,
+):
+    n_bends = bends.shape[0]
+    ti.loop_config(serialize=True)
+    for m in range(n_bends):
+        b = m
+        if reverse != 0:
+            b = n_bends - 1 - m
+        bend_gs_one(b, x, xp, w, bends, kw, comp, beta, lam_b, h, omega)
+
+
+@ti.kernel
+def springs_jacobi(
+    x: V3,
+    xp: V3,
+    w: F1,
+    springs: I2,
+    rest: F1,
+    comp_t: F1,
+    comp_c: F1,
+    beta: F1,
+    lam: F1,
+    out: V3,
+    h: ti.f32,
+):
+    for e in range(springs.shape[0]):
+        r = spring_delta(x, xp, w, springs, rest, comp_t, comp_c, beta, lam, e, h)
+        lam[e] += r[3]
+        out[e] = vec3(r[0], r[1], r[2])
+
+
+@ti.kernel
+def bends_jacobi(
+    x: V3, xp: V3, w: F1, bends: I4, kw: V4, comp: F1, beta: F1, lam_b: V3, out: V3, h: ti.f32
+):
+    for b in range(bends.shape[0]):
+        dl = bend_delta(x, xp, w, bends, kw, comp, beta, lam_b, b, h)
+        lam_b[b] += dl
+        out[b] = dl
+
+
+@ti.kernel
+def apply_jacobi(
+    x: V3,
+    w: F1,
+    s_ptr: I1,
+    s_ref: I1,
+    s_dx: V3,
+    b_ptr: I1,
+    b_ref: I1,
+    b_slot: I1,
+    b_dl: V3,
+    kw: V4,
+    omega: ti.f32,
+):
+    """Gather the Jacobi corrections of each vertex's springs (signed refs) and bends."""
+    for i in range(x.shape[0]):
+        acc = vec3(0.0)
+        for q in range(s_ptr[i], s_ptr[i + 1]):
+            ref = s_ref[q]
+            if ref >= 0:
+                acc += s_dx[ref]
+            else:
+                acc -= s_dx[-ref - 1]
+        for q in range(b_ptr[i], b_ptr[i + 1]):
+            acc += kw[b_ref[q]][b_slot[q]] * b_dl[b_ref[q]]
+        x[i] += omega * w[i] * acc
+
+
+# -- explicit forces ---------------------------------------------------------------------------
+@ti.kernel
+def spring_forces(x: V3, v: V3, f: V3, springs: I2, rest: F1, k_t: F1, k_c: F1, beta: F1):
+    for e in range(springs.shape[0]):
+        i = springs[e][0]
+        j = springs[e][1]
+        d = x[j] - x[i]
+        length = d.norm()
+        if length > 1e-9:
+            n = d / length
+            c = length - rest[e]
+            k = k_t[e]
+            if c < 0.0:
+                k = k_c[e]
+            fe = (k * c + beta[e] * k * n.dot(v[j] - v[i])) * n
+            f[i] += fe
+            f[j] -= fe
+
+
+@ti.kernel
+def bend_forces(x: V3, v: V3, f: V3, bends: I4, kw: V4, stiff: F1, beta: F1):
+    for b in range(bends.shape[0]):
+        s = bends[b]
+        k = kw[b]
+        c = k[0] * x[s[0]] + k[1] * x[s[1]] + k[2] * x[s[2]] + k[3] * x[s[3]]
+        cv = k[0] * v[s[0]] + k[1] * v[s[1]] + k[2] * v[s[2]] + k[3] * v[s[3]]
+        g = stiff[b] * (c + beta[b] * cv)
+        for q in ti.static(range(4)):
+            f[s[q]] -= k[q] * g
+
+
+@ti.kernel
+def explicit_update(
+    x: V3,
+    xp: V3,
+    v: V3,
+    f: V3,
+    w: F1,
+    drag: F1,
+    gravity: vec3,
+    wind: vec3,
+    h: ti.f32,
+    use_gravity: ti.template(),
+    use_air: ti.template(),
+):
+    """Semi-implicit (symplectic) Euler: v += h a; x += h v."""
+    for i in x:
+        xp[i] = x[i]
+        if w[i] > 0.0:
+            vi = v[i] + h * w[i] * f[i]
+            if ti.static(use_air):
+                vi = wind + (vi - wind) / (1.0 + h * drag[i] * w[i])
+            if ti.static(use_gravity):
+                vi += h * gravity
+            v[i] = vi
+            x[i] += h * vi
+        f[i] = vec3(0.0)
+
+
+# -- pins --------------------------------------------------------------------------------------
+@ti.kernel
+def apply_pins(x: V3, pin_idx: I1, t0: V3, t1: V3, s: ti.f32):
+    for p in pin_idx:
+        x[pin_idx[p]] = lerp3(t0[p], t1[p], s)
+
+
+# -- body collision ----------------------------------------------------------------------------
+@ti.func
+def collide_one(
+    i: ti.i32,
+    x: V3,
+    xp: V3,
+    w: F1,
+    tri: I1,
+    faces: I3,
+    fadj: I3,
+    b0: V3,
+    b1: V3,
+    n0: V3,
+    n1: V3,
+    s0: ti.f32,
+    s1: ti.f32,
+    thickness: F1,
+    friction: F1,
+    recover: ti.f32,
+    release: ti.f32,
+    contact_n: V3,
+    contact_v: V3,
+    h: ti.f32,
+    use_friction: ti.template(),
+):
+    """Keep cloth vertex i `thickness` outside the moving body surface (interpolated between
+    frame positions b0 -> b1 at fractions s0 -> s1 of the frame), with Coulomb friction.
+
+    The vertex tracks its closest body triangle: a walk across edges towards the projection of
+    the vertex keeps it current as the body moves; the grid search resets it.
+    """
+    contact_n[i] = vec3(0.0)
+    contact_v[i] = vec3(0.0)
+    t = tri[i]
+    if w[i] > 0.0 and t >= 0:
+        p = x[i]
+        for _ in range(8):
+            f = faces[t]
+            a = lerp3(b0[f[0]], b1[f[0]], s1)
+            b = lerp3(b0[f[1]], b1[f[1]], s1)
+            c = lerp3(b0[f[2]], b1[f[2]], s1)
+            bc = plane_barycentric(p, a, b, c)
+            m = 0
+            if bc[1] < bc[m]:
+                m = 1
+            if bc[2] < bc[m]:
+                m = 2
+            nxt = -1
+            # A small tolerance stops the walk from circling a vertex whose neighbourhood no
+            # triangle plane contains the projection of; the clamped closest point is right.
+            if bc[m] < -0.02:
+                nxt = fadj[t][m]
+            if nxt < 0:
+                break
+            t = nxt
+        tri[i] = t
+        f = faces[t]
+        a = lerp3(b0[f[0]], b1[f[0]], s1)
+        b = lerp3(b0[f[1]], b1[f[1]], s1)
+        c = lerp3(b0[f[2]], b1[f[2]], s1)
+        r = closest_on_triangle(p, a, b, c)
+        if r[3] > release * release:
+            tri[i] = -1  # far from the body now: the grid search picks it up again
+        q = r[0] * a + r[1] * b + r[2] * c
+        nrm = (
+            r[0] * lerp3(n0[f[0]], n1[f[0]], s1)
+            + r[1] * lerp3(n0[f[1]], n1[f[1]], s1)
+            + r[2] * lerp3(n0[f[2]], n1[f[2]], s1)
+        )
+        nl = nrm.norm()
+        if nl > 1e-12:
+            nrm /= nl
+            sd = (p - q).dot(nrm)
+            thick = thickness[i]
+            qa = (
+                r[0] * lerp3(b0[f[0]], b1[f[0]], s0)
+                + r[1] * lerp3(b0[f[1]], b1[f[1]], s0)
+                + r[2] * lerp3(b0[f[2]], b1[f[2]], s0)
+            )
+            # A vertex that was outside at the start of the substep is projected fully (a new
+            # contact); one that was already inside (a garment that starts in the body)
+            # recovers gradually so it does not shoot out.
+            target = thick
+            sd_prev = (xp[i] - qa).dot(nrm)
+            if sd_prev < 0.0:
+                target = ti.min(thick, sd_prev + recover)
+            if sd < target:
+                dq = q - qa
+                push = target - sd
+                p += push * nrm
+                if ti.static(use_friction):
+                    rel = (p - xp[i]) - dq
+                    tang = rel - rel.dot(nrm) * nrm
+                    lt = tang.norm()
+                    limit = friction[i] * push
+                    if lt > 1e-12:
+                        p -= tang * ti.min(1.0, limit / lt)
+                x[i] = p
+                contact_n[i] = nrm
+                contact_v[i] = dq / h
+
+
+@ti.kernel
+def collide_body(
+    x: V3,
+    xp: V3,
+    w: F1,
+    tri: I1,
+    faces: I3,
+    fadj: I3,
+    b0: V3,
+    b1: V3,
+    n0: V3,
+    n1: V3,
+    s0: ti.f32,
+    s1: ti.f32,
+    thickness: F1,
+    friction: F1,
+    recover: ti.f32,
+    release: ti.f32,
+    contact_n: V3,
+    contact_v: V3,
+    h: ti.f32,
+    use_friction: ti.template(),
+):
+    for i in x:
+        collide_one(
+            i,
+            x,
+            xp,
+            w,
+            tri,
+            faces,
+            fadj,
+            b0,
+            b1,
+            n0,
+            n1,
+            s0,
+            s1,
+            thickness,
+            friction,
+            recover,
+            release,
+            contact_n,
+            contact_v,
+            h,
+            use_friction,
+        )
+
+
+@ti.kernel
+def grid_count(
+    b0: V3,
+    b1: V3,
+    faces: I3,
+    mask: I1,
+    origin: vec3,
+    inv_cell: ti.f32,
+    dims: ti.math.ivec3,
+    counts: I1,
+):
+    for t in range(faces.shape[0]):
+        if mask[t] != 0:
+            f = faces[t]
+            lo = ti.min(
+                ti.min(ti.min(b0[f[0]], b0[f[1]]), ti.min(b0[f[2]], b1[f[0]])),
+                ti.min(b1[f[1]], b1[f[2]]),
+            )
+            hi = ti.max(
+                ti.max(ti.max(b0[f[0]], b0[f[1]]), ti.max(b0[f[2]], b1[f[0]])),
+                ti.max(b1[f[1]], b1[f[2]]),
+            )
+            c0 = ti.max(ti.cast(ti.floor((lo - origin) * inv_cell), ti.i32), 0)
+            c1 = ti.min(ti.cast(ti.floor((hi - origin) * inv_cell), ti.i32), dims - 1)
+            for cx in range(c0[0], c1[0] + 1):
+                for cy in range(c0[1], c1[1] + 1):
+                    for cz in range(c0[2], c1[2] + 1):
+                        ti.atomic_add(counts[(cx * dims[1] + cy) * dims[2] + cz], 1)
+
+
+@ti.kernel
+def grid_prefix(counts: I1, starts: I1, n_cells: ti.i32):
+    """Exclusive prefix sum (serial: one pass over the cells per frame is cheap)."""
+    ti.loop_config(serialize=True)
+    for c in range(n_cells):
+        if c == 0:
+            starts[0] = 0
+        starts[c + 1] = starts[c] + counts[c]
+        counts[c] = 0
+
+
+@ti.kernel
+def grid_fill(
+    b0: V3,
+    b1: V3,
+    faces: I3,
+    mask: I1,
+    origin: vec3,
+    inv_cell: ti.f32,
+    dims: ti.math.ivec3,
+    counts: I1,
+    starts: I1,
+    items: I1,
+):
+    for t in range(faces.shape[0]):
+        if mask[t] != 0:
+            f = faces[t]
+            lo = ti.min(
+                ti.min(ti.min(b0[f[0]], b0[f[1]]), ti.min(b0[f[2]], b1[f[0]])),
+                ti.min(b1[f[1]], b1[f[2]]),
+            )
+            hi = ti.max(
+                ti.max(ti.max(b0[f[0]], b0[f[1]]), ti.max(b0[f[2]], b1[f[0]])),
+                ti.max(b1[f[1]], b1[f[2]]),
+            )
+            c0 = ti.max(ti.cast(ti.floor((lo - origin) * inv_cell), ti.i32), 0)
+            c1 = ti.min(ti.cast(ti.floor((hi - origin) * inv_cell), ti.i32), dims - 1)
+            for cx in range(c0[0], c1[0] + 1):
+                for cy in range(c0[1], c1[1] + 1):
+                    for cz in range(c0[2], c1[2] + 1):
+                        cell = (cx * dims[1] + cy) * dims[2] + cz
+                        slot = ti.atomic_add(counts[cell], 1)
+                        items[starts[cell] + slot] = t
+
+
+@ti.func
+def nearest_one(
+    i: ti.i32,
+    x: V3,
+    w: F1,
+    b0: V3,
+    b1: V3,
+    faces: I3,
+    origin: vec3,
+    inv_cell: ti.f32,
+    dims: ti.math.ivec3,
+    starts: I1,
+    items: I1,
+    s: ti.f32,
+    max_dist: ti.f32,
+    tri: I1,
+    only_untracked: ti.i32,
+):
+    """The closest collider triangle to cloth vertex i within `max_dist` (else -1), at body
+    positions interpolated at fraction s, searching the 27 grid cells around the vertex.
+    With `only_untracked`, a vertex that already tracks a triangle keeps it."""
+    if w[i] > 0.0 and (only_untracked == 0 or tri[i] < 0):
+        p = x[i]
+        cell = ti.cast(ti.floor((p - origin) * inv_cell), ti.i32)
+        best = max_dist * max_dist
+        best_t = -1
+        for nb in range(27):  # a dynamic loop: unrolling 27 copies makes compiles slow
+            c = cell + ti.math.ivec3(nb // 9 - 1, (nb // 3) % 3 - 1, nb % 3 - 1)
+            if (
+                c[0] >= 0
+                and c[1] >= 0
+                and c[2] >= 0
+                and c[0] < dims[0]
+                and c[1] < dims[1]
+                and c[2] < dims[2]
+            ):
+                cid = (c[0] * dims[1] + c[1]) * dims[2] + c[2]
+                for q in range(starts[cid], starts[cid + 1]):
+                    t = items[q]
+                    f = faces[t]
+                    r = closest_on_triangle(
+                        p,
+                        lerp3(b0[f[0]], b1[f[0]], s),
+                        lerp3(b0[f[1]], b1[f[1]], s),
+                        lerp3(b0[f[2]], b1[f[2]], s),
+                    )
+                    if r[3] < best:
+                        best = r[3]
+                        best_t = t
+        tri[i] = best_t
+
+
+@ti.kernel
+def grid_nearest(
+    x: V3,
+    w: F1,
+    b0: V3,
+    b1: V3,
+    faces: I3,
+    origin: vec3,
+    inv_cell: ti.f32,
+    dims: ti.math.ivec3,
+    starts: I1,
+    items: I1,
+    s: ti.f32,
+    max_dist: ti.f32,
+    tri: I1,
+    only_untracked: ti.i32,
+):
+    for i in x:
+        nearest_one(
+            i,
+            x,
+            w,
+            b0,
+            b1,
+            faces,
+            origin,
+            inv_cell,
+            dims,
+            starts,
+            items,
+            s,
+            max_dist,
+            tri,
+            only_untracked,
+        )
+
+
+# -- one launch per frame (CPU) ----------------------------------------------------------------
+@ti.kernel
+def xpbd_frame(
+    x: V3,
+    xp: V3,
+    v: V3,
+    w: F1,
+    drag: F1,
+    springs: I2,
+    rest: F1,
+    comp_t: F1,
+    comp_c: F1,
+    beta: F1,
+    lam: F1,
+    set_ranges: I2,
+    n_sets: ti.i32,
+    bends: I4,
+    kw: V4,
+    bcomp: F1,
+    bbeta: F1,
+    lam_b: V3,
+    n_bends: ti.i32,
+    pin_idx: I1,
+    pin_t0: V3,
+    pin_t1: V3,
+    n_pins: ti.i32,
+    tri: I1,
+    faces: I3,
+    fadj: I3,
+    b0: V3,
+    b1: V3,
+    n0: V3,
+    n1: V3,
+    thickness: F1,
+    friction: F1,
+    contact_n: V3,
+    contact_v: V3,
+    origin: vec3,
+    inv_cell: ti.f32,
+    dims: ti.math.ivec3,
+    starts: I1,
+    items: I1,
+    cell: ti.f32,
+    gravity: vec3,
+    wind: vec3,
+    h: ti.f32,
+    n_sub: ti.i32,
+    n_iter: ti.i32,
+    sweep0: ti.i32,
+    omega: ti.f32,
+    recover: ti.f32,
+    use_gravity: ti.template(),
+    use_air: ti.template(),
+    use_collision: ti.template(),
+    use_friction: ti.template(),
+):
+    """All substeps of one frame of the XPBD solver in one serial launch: the same per-element
+    functions, in the same order, as the per-effect kernels (which profiling runs use), without
+    a Python round trip per kernel."""
+    n = x.shape[0]
+    ti.loop_config(serialize=True)
+    for k in range(n_sub):
+        s0 = k / n_sub
+        s1 = (k + 1) / n_sub
+        for i in range(n):
+            predict_one(i, x, xp, v, w, drag, gravity, wind, h, use_gravity, use_air)
+        for e in range(springs.shape[0]):
+            lam[e] = 0.0
+        for b in range(n_bends):
+            lam_b[b] = vec3(0.0)
+        for it in range(n_iter):
+            reverse = (sweep0 + k * n_iter + it) % 2
+            for si in range(n_sets):
+                lo = set_ranges[si][0]
+                hi = set_ranges[si][1]
+                for m in range(hi - lo):
+                    e = lo + m
+                    if reverse != 0:
+                        e = hi - 1 - m
+                    spring_gs_one(e, x, xp, w, springs, rest, comp_t, comp_c, beta, lam, h, omega)
+            for m in range(n_bends):
+                b = m
+                if reverse != 0:
+                    b = n_bends - 1 - m
+                bend_gs_one(b, x, xp, w, bends, kw, bcomp, bbeta, lam_b, h, omega)
+        for p in range(n_pins):
+            x[pin_idx[p]] = lerp3(pin_t0[p], pin_t1[p], s1)
+        if ti.static(use_collision):
+            for i in range(n):
+                nearest_one(
+                    i, x, w, b0, b1, faces, origin, inv_cell, dims, starts, items, s1, cell, tri, 1
+                )
+            for i in range(n):
+                collide_one(
+                    i,
+                    x,
+                    xp,
+                    w,
+                    tri,
+                    faces,
+                    fadj,
+                    b0,
+                    b1,
+                    n0,
+                    n1,
+                    s0,
+                    s1,
+                    thickness,
+                    friction,
+                    recover,
+                    2.0 * cell,
+                    contact_n,
+                    contact_v,
+                    h,
+                    use_friction,
+                )
+        for i in range(n):
+            finish_one(i, x, xp, v, w, contact_n, contact_v, h)

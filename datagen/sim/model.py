@@ -1,0 +1,242 @@
+"""The static cloth model: particles, masses, springs by type, bending stencils, pins, elastics.
+
+Built once per scene from the outfit's garments (numpy); the solvers only read it.
+
+Resolution independence (docs/fabrics.md):
+- vertex mass = density * (one third of the adjacent rest triangle areas);
+- spring stiffness k_e = Y * A_e / L_e^2, with A_e one third of the adjacent triangle areas and
+  Y the fabric's stretch (warp/weft edges) or shear (diagonal edges) stiffness in N/m, so a
+  sheet's membrane stiffness does not depend on how finely it is meshed;
+- bending: a quadratic isometric model (after Bergou et al. 2006) on each interior edge,
+  E = 1/2 * B / (A0 + A1) * |sum_k K_k x_k|^2, whose stencil weights K come from the flat rest
+  geometry of the two triangles (|sum K x| = theta |e| for a small fold theta); B is the bending
+  rigidity in N m, and the energy of a sheet rolled to radius R tends to B * area / (2 R^2) at
+  any resolution and triangulation (tests/test_sim_model.py checks it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from datagen.sim.fabrics import Fabric
+from datagen.types import Garment
+
+STRUCTURAL, SHEAR = 0, 1
+ELASTIC_LENGTH = 0.85  # elastic bands gather the fabric: 15 % shorter rest length
+ELASTIC_STIFFNESS = 5.0  # and stiffer than the fabric
+
+
+@dataclass
+class ClothModel:
+    """Concatenated arrays of every garment of a scene."""
+
+    x0: np.ndarray  # (V, 3) float64 initial positions
+    faces: np.ndarray  # (T, 3) int32
+    mass: np.ndarray  # (V,) kg
+    garment_of_vertex: np.ndarray  # (V,) int32
+    garment_names: list[str]
+    garment_ranges: list[tuple[int, int]]  # vertex range of each garment
+    face_ranges: list[tuple[int, int]]
+    springs: np.ndarray  # (E, 2) int32
+    rest_length: np.ndarray  # (E,)
+    k_tension: np.ndarray  # (E,) N/m
+    k_compression: np.ndarray  # (E,)
+    spring_beta: np.ndarray  # (E,) s, Rayleigh damping factor
+    spring_kind: np.ndarray  # (E,) STRUCTURAL or SHEAR
+    spring_elastic: np.ndarray  # (E,) bool
+    bends: np.ndarray  # (B, 4) int32: hinge v0, v1, wings v2, v3
+    bend_weights: np.ndarray  # (B, 4) K
+    bend_stiffness: np.ndarray  # (B,) B_rigidity / (A0 + A1)
+    bend_beta: np.ndarray  # (B,) s
+    air_drag: np.ndarray  # (V,) kg/s: d * vertex area
+    friction: np.ndarray  # (V,)
+    thickness: np.ndarray  # (V,) m
+    max_strain: np.ndarray  # (E,)
+    pinned: np.ndarray  # (P,) vertex ids attached to the body
+    fabrics: list[Fabric]
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.x0)
+
+    @property
+    def inv_mass(self) -> np.ndarray:
+        w = 1.0 / self.mass
+        w[self.pinned] = 0.0
+        return w
+
+
+def edges_of(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique undirected edges (E, 2) and, per edge, its two adjacent faces (-1 if boundary)."""
+    f = np.asarray(faces, dtype=np.int64)
+    half = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    face_of = np.tile(np.arange(len(f)), 3)
+    key = np.sort(half, axis=1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    key, face_of = key[order], face_of[order]
+    new = np.ones(len(key), dtype=bool)
+    new[1:] = np.any(key[1:] != key[:-1], axis=1)
+    edge_id = np.cumsum(new) - 1
+    edges = key[new]
+    adj = -np.ones((len(edges), 2), dtype=np.int64)
+    first = np.flatnonzero(new)
+    adj[:, 0] = face_of[first]
+    second = np.flatnonzero(~new)
+    adj[edge_id[second], 1] = face_of[second]
+    return edges, adj
+
+
+def triangle_areas(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    t = x[faces]
+    return 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+
+
+def bending_stencils(rest: np.ndarray, faces: np.ndarray, edges: np.ndarray, adj: np.ndarray):
+    """Stencils (B, 4) and weights K (B, 4) of the interior edges, from the flat rest geometry.
+
+    K is the affine dependency of the hinge and wing points unfolded into a plane, scaled so that
+    |sum K x| equals theta * |e| for a small fold of angle theta about the hinge.
+    """
+    interior = adj[:, 1] >= 0
+    e = edges[interior]
+    f0 = faces[adj[interior, 0]]
+    f1 = faces[adj[interior, 1]]
+    # The wing vertex of each face: the one not on the hinge.
+    w0 = f0[(f0 != e[:, :1]) & (f0 != e[:, 1:])]
+    w1 = f1[(f1 != e[:, :1]) & (f1 != e[:, 1:])]
+    p0, p1, p2, p3 = rest[e[:, 0]], rest[e[:, 1]], rest[w0], rest[w1]
+    hinge = p1 - p0
+    length = np.linalg.norm(hinge, axis=1)
+    axis = hinge / length[:, None]
+
+    def unfold(p):
+        rel = p - p0
+        s = np.einsum("ij,ij->i", rel, axis)
+        h = np.linalg.norm(rel - s[:, None] * axis, axis=1)
+        return s, h
+
+    s2, h2 = unfold(p2)
+    s3, h3 = unfold(p3)
+    ok = (h2 > 1e-9 * length) & (h3 > 1e-9 * length) & (length > 1e-12)
+    k2 = length / np.where(ok, h2, 1.0)
+    k3 = length / np.where(ok, h3, 1.0)
+    k1 = -(k2 * s2 + k3 * s3) / np.where(ok, length, 1.0)
+    k0 = -(k2 + k3) - k1
+    stencils = np.stack([e[:, 0], e[:, 1], w0, w1], axis=1)[ok]
+    weights = np.stack([k0, k1, k2, k3], axis=1)[ok]
+    areas = (0.5 * length * (h2 + h3))[ok]
+    return stencils.astype(np.int32), weights, areas
+
+
+def _spring_kinds(uv: np.ndarray | None, edges: np.ndarray) -> np.ndarray:
+    """Warp/weft edges are structural; edges near 45 degrees to the grain are shear."""
+    if uv is None:
+        return np.full(len(edges), STRUCTURAL, dtype=np.int8)
+    d = uv[edges[:, 1]] - uv[edges[:, 0]]
+    angle = np.degrees(np.arctan2(np.abs(d[:, 1]), np.abs(d[:, 0])))
+    return np.where((angle > 22.5) & (angle < 67.5), SHEAR, STRUCTURAL).astype(np.int8)
+
+
+def _loop_edges(loop: np.ndarray, edge_index: dict[tuple[int, int], int]) -> list[int]:
+    out = []
+    for a, b in zip(loop, np.roll(loop, -1), strict=True):
+        key = (min(a, b), max(a, b))
+        if key in edge_index:
+            out.append(edge_index[key])
+    return out
+
+
+def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
+    xs, faces, masses, gids, names, granges, franges = [], [], [], [], [], [], []
+    springs, rest_len, kt, kc, beta, kind, elastic, maxs = [], [], [], [], [], [], [], []
+    bends, bweights, bstiff, bbeta = [], [], [], []
+    drag, fric, thick, pinned, fabrics = [], [], [], [], []
+    offset = 0
+    face_offset = 0
+    for gi, (garment, fabric) in enumerate(garments):
+        x = np.asarray(garment.vertices, dtype=np.float64)
+        rest = np.asarray(garment.rest, dtype=np.float64)
+        f = np.asarray(garment.faces, dtype=np.int64)
+        n = len(x)
+        areas = triangle_areas(rest, f)
+        vertex_area = np.zeros(n)
+        np.add.at(vertex_area, f.ravel(), np.repeat(areas / 3.0, 3))
+        e, adj = edges_of(f)
+        edge_area = areas[adj[:, 0]] / 3.0 + np.where(adj[:, 1] >= 0, areas[adj[:, 1]] / 3.0, 0.0)
+        length = np.linalg.norm(rest[e[:, 1]] - rest[e[:, 0]], axis=1)
+        safe = np.maximum(length, 1e-9)
+        k_kind = _spring_kinds(garment.uv, e)
+        y_t = np.where(k_kind == SHEAR, fabric.shear, fabric.stretch)
+        y_c = np.where(k_kind == SHEAR, fabric.shear, fabric.compression)
+        k_t = y_t * edge_area / safe**2
+        k_c = y_c * edge_area / safe**2
+        is_elastic = np.zeros(len(e), dtype=bool)
+        if garment.elastic:
+            index = {(int(a), int(b)): i for i, (a, b) in enumerate(e)}
+            for role in garment.elastic:
+                ids = _loop_edges(np.asarray(garment.loops[role]), index)
+                is_elastic[ids] = True
+        length = np.where(is_elastic, length * ELASTIC_LENGTH, length)
+        k_t = np.where(is_elastic, k_t * ELASTIC_STIFFNESS, k_t)
+        k_c = np.where(is_elastic, k_c * ELASTIC_STIFFNESS, k_c)
+        st, sw, sa = bending_stencils(rest, f, e, adj)
+
+        xs.append(x)
+        faces.append(f + offset)
+        masses.append(fabric.density * vertex_area)
+        gids.append(np.full(n, gi, dtype=np.int32))
+        names.append(garment.name)
+        granges.append((offset, offset + n))
+        franges.append((face_offset, face_offset + len(f)))
+        springs.append(e + offset)
+        rest_len.append(length)
+        kt.append(k_t)
+        kc.append(k_c)
+        beta.append(np.full(len(e), fabric.stretch_damping))
+        kind.append(k_kind)
+        elastic.append(is_elastic)
+        maxs.append(np.full(len(e), fabric.max_strain))
+        bends.append(st + offset)
+        bweights.append(sw)
+        bstiff.append(fabric.bending / sa)
+        bbeta.append(np.full(len(st), fabric.bending_damping))
+        drag.append(fabric.air_drag * vertex_area)
+        fric.append(np.full(n, fabric.friction))
+        thick.append(np.full(n, fabric.thickness))
+        if garment.pinned is not None and len(garment.pinned):
+            pinned.append(np.asarray(garment.pinned, dtype=np.int64) + offset)
+        fabrics.append(fabric)
+        offset += n
+        face_offset += len(f)
+
+    mass = np.concatenate(masses)
+    if np.any(mass <= 0):
+        raise ValueError("a garment vertex has no area (unreferenced or degenerate faces)")
+    return ClothModel(
+        x0=np.concatenate(xs),
+        faces=np.concatenate(faces).astype(np.int32),
+        mass=mass,
+        garment_of_vertex=np.concatenate(gids),
+        garment_names=names,
+        garment_ranges=granges,
+        face_ranges=franges,
+        springs=np.concatenate(springs).astype(np.int32),
+        rest_length=np.concatenate(rest_len),
+        k_tension=np.concatenate(kt),
+        k_compression=np.concatenate(kc),
+        spring_beta=np.concatenate(beta),
+        spring_kind=np.concatenate(kind),
+        spring_elastic=np.concatenate(elastic),
+        bends=np.concatenate(bends).astype(np.int32),
+        bend_weights=np.concatenate(bweights),
+        bend_stiffness=np.concatenate(bstiff),
+        bend_beta=np.concatenate(bbeta),
+        air_drag=np.concatenate(drag),
+        friction=np.concatenate(fric),
+        thickness=np.concatenate(thick),
+        max_strain=np.concatenate(maxs),
+        pinned=np.concatenate(pinned) if pinned else np.zeros(0, dtype=np.int64),
+        fabrics=fabrics,
+    )

@@ -1,0 +1,100 @@
+"""Simple reference scenes for tests, benchmarks and the accuracy study: a sheet on a sphere, a
+skirt-like tube on a moving cylinder. Both sides (ours and Blender's) build them from these
+functions, so they simulate the same geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from datagen.types import Garment
+
+
+def grid_sheet(
+    n: int, size: float, height: float, name: str = "sheet", fabric: str = "cotton"
+) -> Garment:
+    """A square sheet of (n+1)^2 vertices, `size` metres wide, horizontal at `height`, centred
+    over the origin; triangles alternate their diagonal so the sheet has no preferred shear
+    direction. The uv pattern coordinates are the flat positions (grain along x and y)."""
+    xs = np.linspace(-size / 2, size / 2, n + 1)
+    gx, gy = np.meshgrid(xs, xs, indexing="ij")
+    v = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, height)], axis=1)
+    faces = []
+    for i in range(n):
+        for j in range(n):
+            a, b = i * (n + 1) + j, (i + 1) * (n + 1) + j
+            c, d = b + 1, a + 1
+            if (i + j) % 2 == 0:
+                faces += [[a, b, c], [a, c, d]]
+            else:
+                faces += [[a, b, d], [b, c, d]]
+    return Garment(
+        name=name,
+        category="sheet",
+        vertices=v,
+        faces=np.asarray(faces, dtype=np.int32),
+        fabric=fabric,
+        uv=v[:, :2].copy(),
+    )
+
+
+def icosphere(radius: float, subdivisions: int = 4, center=(0.0, 0.0, 0.0)):
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return np.asarray(mesh.vertices) + np.asarray(center), np.asarray(mesh.faces, dtype=np.int32)
+
+
+def cylinder_mesh(
+    radius: float, height: float, sections: int = 48, rings: int = 24, caps: bool = True
+):
+    """A closed cylinder along z from 0 to height (outward normals)."""
+    mesh = trimesh.creation.cylinder(radius=radius, height=height, sections=sections)
+    mesh = mesh.subdivide_to_size(max_edge=height / rings) if rings else mesh
+    v = np.asarray(mesh.vertices) + np.array([0.0, 0.0, height / 2])
+    return v, np.asarray(mesh.faces, dtype=np.int32)
+
+
+def tube(
+    radius: float,
+    length: float,
+    n_around: int,
+    n_along: int,
+    top: float,
+    name: str = "tube",
+    fabric: str = "cotton",
+    flare: float = 0.0,
+) -> Garment:
+    """An open tube (a skirt without its waistband), axis z, hanging from `top` downwards,
+    radius growing by `flare` metres from top to hem. The top loop is named 'waist', the bottom
+    'hem'; uv is the unrolled pattern."""
+    ang = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
+    zs = np.linspace(0, length, n_along + 1)
+    verts, uv = [], []
+    for k, z in enumerate(zs):
+        r = radius + flare * k / n_along
+        for a in ang:
+            verts.append([r * np.cos(a), r * np.sin(a), top - z])
+            uv.append([a * radius, z])
+    faces = []
+    for k in range(n_along):
+        for i in range(n_around):
+            a = k * n_around + i
+            b = k * n_around + (i + 1) % n_around
+            c = (k + 1) * n_around + (i + 1) % n_around
+            d = (k + 1) * n_around + i
+            if (i + k) % 2 == 0:
+                faces += [[a, d, c], [a, c, b]]
+            else:
+                faces += [[a, d, b], [b, d, c]]
+    loops = {
+        "waist": np.arange(n_around),
+        "hem": np.arange(n_along * n_around, (n_along + 1) * n_around),
+    }
+    return Garment(
+        name=name,
+        category="skirt",
+        vertices=np.asarray(verts),
+        faces=np.asarray(faces, dtype=np.int32),
+        fabric=fabric,
+        uv=np.asarray(uv),
+        loops=loops,
+    )

@@ -1,0 +1,597 @@
+"""Cloth solvers with a common substep interface.
+
+- `xpbd`: extended position-based dynamics with small substeps (Macklin et al. 2019) on the
+  same springs and bending model as the others: stiffness enters as compliance 1/k, the
+  Rayleigh damping of the springs as XPBD's damping term, so it converges to the same
+  physics. Gauss-Seidel sweeps (alternating direction) on the CPU, Jacobi on a GPU.
+- `explicit`: semi-implicit (symplectic) Euler with many substeps; a baseline.
+- `implicit`: backward Euler solved by Newton with preconditioned conjugate gradients
+  (datagen.sim.implicit); the reference the others are measured against.
+
+All three share the external forces, pins and collision handling, so their differences are the
+time integration only.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+from datagen.sim import kernels as K
+from datagen.sim.backend import init_taichi, serial
+from datagen.sim.effects import Effects
+from datagen.sim.model import SHEAR, STRUCTURAL, ClothModel
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    substeps: int = 10  # per frame
+    iterations: int = 1  # constraint sweeps (xpbd) or Newton iterations cap (implicit)
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
+    wind: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    recover_speed: float = 0.3  # m/s: how fast a penetrating vertex is moved out
+    jacobi_omega: float = 0.5
+    sor: float = 1.0  # over-relaxation of Gauss-Seidel sweeps
+    tolerance: float = 1e-5  # implicit: Newton stops when the update is below this (m)
+    cg_tolerance: float = 1e-4  # implicit: relative residual of each CG solve
+    cg_max_iterations: int = 200
+
+
+def _nd(dtype, data: np.ndarray):
+    arr = ti.ndarray(dtype, max(len(data), 1))
+    if len(data):
+        arr.from_numpy(np.ascontiguousarray(data))
+    return arr
+
+
+class _SpringSet:
+    def __init__(self, model: ClothModel, select: np.ndarray) -> None:
+        self.count = int(select.sum())
+        self.springs = _nd(ti.math.ivec2, model.springs[select].astype(np.int32))
+        self.rest = _nd(ti.f32, model.rest_length[select].astype(np.float32))
+        self.k_t = _nd(ti.f32, model.k_tension[select].astype(np.float32))
+        self.k_c = _nd(ti.f32, model.k_compression[select].astype(np.float32))
+        self.comp_t = _nd(ti.f32, (1.0 / model.k_tension[select]).astype(np.float32))
+        self.comp_c = _nd(ti.f32, (1.0 / model.k_compression[select]).astype(np.float32))
+        self.beta = _nd(ti.f32, model.spring_beta[select].astype(np.float32))
+        self.lam = _nd(ti.f32, np.zeros(self.count, np.float32))
+        self.out = ti.ndarray(ti.math.vec3, max(self.count, 1))
+        self.index = np.flatnonzero(select)
+
+
+class ClothSolver:
+    """State and the parts every solver shares: external forces, pins, collision, timing."""
+
+    name = "base"
+
+    def __init__(self, model: ClothModel, effects: Effects, settings: SolverSettings) -> None:
+        init_taichi()
+        self.model = model
+        self.effects = effects
+        self.settings = settings
+        n = model.n_vertices
+        self.n = n
+        self.x = _nd(ti.math.vec3, model.x0.astype(np.float32))
+        self.xp = _nd(ti.math.vec3, model.x0.astype(np.float32))
+        self.v = _nd(ti.math.vec3, np.zeros((n, 3), np.float32))
+        w = model.inv_mass.astype(np.float32)
+        if not effects.pins:
+            w = (1.0 / model.mass).astype(np.float32)
+        self.w_np = w
+        self.w = _nd(ti.f32, w)
+        self.drag = _nd(ti.f32, model.air_drag.astype(np.float32))
+        self.thickness = _nd(ti.f32, model.thickness.astype(np.float32))
+        self.friction = _nd(ti.f32, model.friction.astype(np.float32))
+        self.tri = _nd(ti.i32, -np.ones(n, np.int32))
+        self.contact_n = _nd(ti.math.vec3, np.zeros((n, 3), np.float32))
+        self.contact_v = _nd(ti.math.vec3, np.zeros((n, 3), np.float32))
+        self.gravity = ti.math.vec3(*settings.gravity)
+        self.wind = ti.math.vec3(*(settings.wind if effects.wind else (0.0, 0.0, 0.0)))
+        self.sets: dict[str, _SpringSet] = {}
+        kinds = [
+            ("stretch", effects.stretch, (model.spring_kind == STRUCTURAL) & ~model.spring_elastic),
+            ("shear", effects.shear, (model.spring_kind == SHEAR) & ~model.spring_elastic),
+            ("elastic", effects.elastic, model.spring_elastic),
+        ]
+        for name, on, select in kinds:
+            if on and select.any():
+                self.sets[name] = _SpringSet(model, select)
+        if not effects.elastic and model.spring_elastic.any() and effects.stretch:
+            # Without the elastic effect, elastic loops are plain fabric.
+            plain = model.spring_elastic
+            self.sets["stretch_loops"] = _SpringSet(_unelastic(model), plain)
+        self.n_bends = len(model.bends) if effects.bending else 0
+        if self.n_bends:
+            self.bends = _nd(ti.math.ivec4, model.bends)
+            self.kw = _nd(ti.math.vec4, model.bend_weights.astype(np.float32))
+            self.bstiff = _nd(ti.f32, model.bend_stiffness.astype(np.float32))
+            self.bcomp = _nd(ti.f32, (1.0 / model.bend_stiffness).astype(np.float32))
+            self.bbeta = _nd(ti.f32, model.bend_beta.astype(np.float32))
+            self.lam_b = ti.ndarray(ti.math.vec3, self.n_bends)
+            self.b_out = ti.ndarray(ti.math.vec3, self.n_bends)
+        self.n_pins = len(model.pinned) if effects.pins else 0
+        if self.n_pins:
+            self.pin_idx = _nd(ti.i32, model.pinned.astype(np.int32))
+            self.pin_t0 = ti.ndarray(ti.math.vec3, self.n_pins)
+            self.pin_t1 = ti.ndarray(ti.math.vec3, self.n_pins)
+        self.costs: dict[str, float] = defaultdict(float)
+        self.launches: dict[str, int] = defaultdict(int)
+        self._sweep = 0
+
+    # -- state -------------------------------------------------------------------------------
+    def get_state(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.x.to_numpy().astype(np.float64), self.v.to_numpy().astype(np.float64)
+
+    def set_state(self, x: np.ndarray, v: np.ndarray) -> None:
+        self.x.from_numpy(np.asarray(x, np.float32))
+        self.v.from_numpy(np.asarray(v, np.float32))
+
+    def set_pin_targets(self, t0: np.ndarray, t1: np.ndarray) -> None:
+        if self.n_pins:
+            self.pin_t0.from_numpy(np.asarray(t0, np.float32))
+            self.pin_t1.from_numpy(np.asarray(t1, np.float32))
+
+    # -- timing ------------------------------------------------------------------------------
+    def _run(self, effect: str, fn, *args) -> None:
+        t = time.perf_counter()
+        fn(*args)
+        self.costs[effect] += time.perf_counter() - t
+        self.launches[effect] += 1
+
+    # -- shared parts of a substep -----------------------------------------------------------
+    def _pins(self, s1: float) -> None:
+        if self.n_pins:
+            self._run("pins", K.apply_pins, self.x, self.pin_idx, self.pin_t0, self.pin_t1, s1)
+
+    def _collide(self, collider, s0: float, s1: float, h: float) -> None:
+        if collider is None or not self.effects.body_collision:
+            return
+        recover = self.settings.recover_speed * h
+        # Vertices that track no triangle look for one at every substep (cheap: they are far
+        # from the body, in empty cells), so fast limbs and falling cloth are caught in time.
+        self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s1, True)
+        self._run(
+            "body_collision",
+            K.collide_body,
+            self.x,
+            self.xp,
+            self.w,
+            self.tri,
+            collider.faces,
+            collider.fadj,
+            collider.b0,
+            collider.b1,
+            collider.n0,
+            collider.n1,
+            s0,
+            s1,
+            self.thickness,
+            self.friction,
+            recover,
+            2.0 * collider.cell,
+            self.contact_n,
+            self.contact_v,
+            h,
+            self.effects.friction,
+        )
+
+    def search(self, collider, s: float) -> None:
+        """Global closest-triangle search (once per frame, or when the body moves fast)."""
+        if collider is not None and self.effects.body_collision:
+            self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s)
+
+    def substep(self, h: float, collider, s0: float, s1: float) -> None:
+        raise NotImplementedError
+
+    def advance_frame(self, collider, n_sub: int, h: float, profile: bool = False) -> None:
+        """All substeps of one frame. `profile` runs the per-effect kernels so that each
+        effect's cost is measured (solvers with a fused frame kernel skip them otherwise)."""
+        for k in range(n_sub):
+            self.substep(h, collider, k / n_sub, (k + 1) / n_sub)
+
+
+def _unelastic(model: ClothModel) -> ClothModel:
+    """The model with elastic loops reverted to plain fabric (elastic effect off)."""
+    from dataclasses import replace
+
+    from datagen.sim.model import ELASTIC_LENGTH, ELASTIC_STIFFNESS
+
+    el = model.spring_elastic
+    return replace(
+        model,
+        rest_length=np.where(el, model.rest_length / ELASTIC_LENGTH, model.rest_length),
+        k_tension=np.where(el, model.k_tension / ELASTIC_STIFFNESS, model.k_tension),
+        k_compression=np.where(el, model.k_compression / ELASTIC_STIFFNESS, model.k_compression),
+    )
+
+
+class XPBDSolver(ClothSolver):
+    name = "xpbd"
+
+    def __init__(self, model, effects, settings) -> None:
+        super().__init__(model, effects, settings)
+        self.gauss_seidel = serial()
+        if not self.gauss_seidel:
+            self._build_jacobi_adjacency()
+        self._build_fused()
+
+    def _build_fused(self) -> None:
+        """All spring sets in one array, in the order the per-effect kernels visit them."""
+        sets = list(self.sets.values())
+        if sets:
+
+            def cat(attr, dtype):
+                return np.concatenate(
+                    [getattr(s, attr).to_numpy()[: s.count] for s in sets]
+                ).astype(dtype)
+
+            springs = cat("springs", np.int32)
+            ranges, lo = [], 0
+            for s in sets:
+                ranges.append((lo, lo + s.count))
+                lo += s.count
+            self.f_springs = _nd(ti.math.ivec2, springs)
+            self.f_rest = _nd(ti.f32, cat("rest", np.float32))
+            self.f_comp_t = _nd(ti.f32, cat("comp_t", np.float32))
+            self.f_comp_c = _nd(ti.f32, cat("comp_c", np.float32))
+            self.f_beta = _nd(ti.f32, cat("beta", np.float32))
+            self.f_lam = _nd(ti.f32, np.zeros(len(springs), np.float32))
+            self.f_ranges = _nd(ti.math.ivec2, np.asarray(ranges, np.int32))
+            self.f_nsets = len(ranges)
+        else:
+            self.f_springs = _nd(ti.math.ivec2, np.zeros((1, 2), np.int32))
+            self.f_rest = self.f_comp_t = self.f_comp_c = self.f_beta = self.f_lam = _nd(
+                ti.f32, np.zeros(1, np.float32)
+            )
+            self.f_ranges = _nd(ti.math.ivec2, np.zeros((1, 2), np.int32))
+            self.f_nsets = 0
+        if not self.n_bends:
+            self.bends = _nd(ti.math.ivec4, np.zeros((1, 4), np.int32))
+            self.kw = _nd(ti.math.vec4, np.zeros((1, 4), np.float32))
+            self.bcomp = self.bbeta = _nd(ti.f32, np.zeros(1, np.float32))
+            self.lam_b = ti.ndarray(ti.math.vec3, 1)
+        if not self.n_pins:
+            self.pin_idx = _nd(ti.i32, np.zeros(1, np.int32))
+            self.pin_t0 = self.pin_t1 = ti.ndarray(ti.math.vec3, 1)
+        self._dummy_collider = None
+
+    def advance_frame(self, collider, n_sub: int, h: float, profile: bool = False) -> None:
+        if profile or not self.gauss_seidel:
+            return super().advance_frame(collider, n_sub, h, profile)
+        import time
+
+        e = self.effects
+        use_collision = collider is not None and e.body_collision
+        c = collider if use_collision else self._placeholder_collider()
+        t = time.perf_counter()
+        K.xpbd_frame(
+            self.x,
+            self.xp,
+            self.v,
+            self.w,
+            self.drag,
+            self.f_springs,
+            self.f_rest,
+            self.f_comp_t,
+            self.f_comp_c,
+            self.f_beta,
+            self.f_lam,
+            self.f_ranges,
+            self.f_nsets,
+            self.bends,
+            self.kw,
+            self.bcomp,
+            self.bbeta,
+            self.lam_b,
+            self.n_bends,
+            self.pin_idx,
+            self.pin_t0,
+            self.pin_t1,
+            self.n_pins,
+            self.tri,
+            c.faces,
+            c.fadj,
+            c.b0,
+            c.b1,
+            c.n0,
+            c.n1,
+            self.thickness,
+            self.friction,
+            self.contact_n,
+            self.contact_v,
+            c.origin,
+            c.inv_cell,
+            c.dims,
+            c.starts,
+            c.items,
+            float(c.cell),
+            self.gravity,
+            self.wind,
+            h,
+            n_sub,
+            self.settings.iterations,
+            self._sweep,
+            self.settings.sor,
+            self.settings.recover_speed * h,
+            e.gravity,
+            e.air_drag or e.wind,
+            use_collision,
+            e.friction,
+        )
+        self._sweep += n_sub * self.settings.iterations
+        self.costs["fused_frame"] += time.perf_counter() - t
+        self.launches["fused_frame"] += 1
+
+    def _placeholder_collider(self):
+        """Empty collider arrays for scenes without a body (the kernel never reads them)."""
+        if self._dummy_collider is None:
+            from types import SimpleNamespace
+
+            v3 = ti.ndarray(ti.math.vec3, 1)
+            i3 = _nd(ti.math.ivec3, np.zeros((1, 3), np.int32))
+            i1 = _nd(ti.i32, np.zeros(2, np.int32))
+            self._dummy_collider = SimpleNamespace(
+                faces=i3,
+                fadj=i3,
+                b0=v3,
+                b1=v3,
+                n0=v3,
+                n1=v3,
+                origin=ti.math.vec3(0.0),
+                inv_cell=1.0,
+                dims=ti.math.ivec3(1, 1, 1),
+                starts=i1,
+                items=i1,
+                cell=1.0,
+            )
+        return self._dummy_collider
+
+    def _build_jacobi_adjacency(self) -> None:
+        """Per-vertex lists of signed spring references (per set) and bend slots."""
+        self.jacobi = {}
+        for name, s in self.sets.items():
+            sp = self.model.springs[s.index]
+            ref = np.concatenate([-(np.arange(len(sp)) + 1), np.arange(len(sp))])
+            owner = np.concatenate([sp[:, 0], sp[:, 1]])
+            order = np.argsort(owner, kind="stable")
+            ptr = np.zeros(self.n + 1, np.int32)
+            np.add.at(ptr, owner + 1, 1)
+            self.jacobi[name] = (
+                _nd(ti.i32, np.cumsum(ptr).astype(np.int32)),
+                _nd(ti.i32, ref[order].astype(np.int32)),
+            )
+        if self.n_bends:
+            owner = self.model.bends.ravel()
+            slot = np.tile(np.arange(4), self.n_bends)
+            bref = np.repeat(np.arange(self.n_bends), 4)
+            order = np.argsort(owner, kind="stable")
+            ptr = np.zeros(self.n + 1, np.int32)
+            np.add.at(ptr, owner + 1, 1)
+            self.jacobi_b = (
+                _nd(ti.i32, np.cumsum(ptr).astype(np.int32)),
+                _nd(ti.i32, bref[order].astype(np.int32)),
+                _nd(ti.i32, slot[order].astype(np.int32)),
+            )
+        empty = _nd(ti.i32, np.zeros(self.n + 1, np.int32))
+        self.jacobi_empty = (empty, _nd(ti.i32, np.zeros(1, np.int32)))
+
+    def substep(self, h: float, collider, s0: float, s1: float) -> None:
+        e = self.effects
+        self._run(
+            "gravity" if e.gravity else "air_drag",
+            K.predict,
+            self.x,
+            self.xp,
+            self.v,
+            self.w,
+            self.drag,
+            self.gravity,
+            self.wind,
+            h,
+            e.gravity,
+            e.air_drag or e.wind,
+        )
+        for s in self.sets.values():
+            s.lam.fill(0.0)
+        if self.n_bends:
+            self.lam_b.fill(0.0)
+        for _ in range(self.settings.iterations):
+            reverse = self._sweep % 2
+            self._sweep += 1
+            if self.gauss_seidel:
+                for name, s in self.sets.items():
+                    self._run(
+                        name,
+                        K.springs_gauss_seidel,
+                        self.x,
+                        self.xp,
+                        self.w,
+                        s.springs,
+                        s.rest,
+                        s.comp_t,
+                        s.comp_c,
+                        s.beta,
+                        s.lam,
+                        h,
+                        reverse,
+                        self.settings.sor,
+                    )
+                if self.n_bends:
+                    self._run(
+                        "bending",
+                        K.bends_gauss_seidel,
+                        self.x,
+                        self.xp,
+                        self.w,
+                        self.bends,
+                        self.kw,
+                        self.bcomp,
+                        self.bbeta,
+                        self.lam_b,
+                        h,
+                        reverse,
+                        self.settings.sor,
+                    )
+            else:
+                self._jacobi_iteration(h)
+        self._pins(s1)
+        self._collide(collider, s0, s1, h)
+        self._run(
+            "integration",
+            K.finish,
+            self.x,
+            self.xp,
+            self.v,
+            self.w,
+            self.contact_n,
+            self.contact_v,
+            h,
+        )
+
+    def _jacobi_iteration(self, h: float) -> None:
+        omega = self.settings.jacobi_omega
+        for name, s in self.sets.items():
+            self._run(
+                name,
+                K.springs_jacobi,
+                self.x,
+                self.xp,
+                self.w,
+                s.springs,
+                s.rest,
+                s.comp_t,
+                s.comp_c,
+                s.beta,
+                s.lam,
+                s.out,
+                h,
+            )
+        if self.n_bends:
+            self._run(
+                "bending",
+                K.bends_jacobi,
+                self.x,
+                self.xp,
+                self.w,
+                self.bends,
+                self.kw,
+                self.bcomp,
+                self.bbeta,
+                self.lam_b,
+                self.b_out,
+                h,
+            )
+        names = list(self.sets)
+        for k, name in enumerate(names):
+            ptr, ref = self.jacobi[name]
+            bptr, bref, bslot = (
+                self.jacobi_b
+                if (k == 0 and self.n_bends)
+                else (self.jacobi_empty[0], self.jacobi_empty[1], self.jacobi_empty[1])
+            )
+            self._run(
+                name,
+                K.apply_jacobi,
+                self.x,
+                self.w,
+                ptr,
+                ref,
+                self.sets[name].out,
+                bptr,
+                bref,
+                bslot,
+                self.b_out if self.n_bends else self.sets[name].out,
+                self.kw if self.n_bends else _dummy_vec4(),
+                omega,
+            )
+
+
+_DUMMY: dict = {}
+
+
+def _dummy_vec4():
+    if "v4" not in _DUMMY:
+        _DUMMY["v4"] = ti.ndarray(ti.math.vec4, 1)
+    return _DUMMY["v4"]
+
+
+class ExplicitSolver(ClothSolver):
+    name = "explicit"
+
+    def __init__(self, model, effects, settings) -> None:
+        super().__init__(model, effects, settings)
+        self.f = _nd(ti.math.vec3, np.zeros((self.n, 3), np.float32))
+
+    def substep(self, h: float, collider, s0: float, s1: float) -> None:
+        e = self.effects
+        for name, s in self.sets.items():
+            self._run(
+                name,
+                K.spring_forces,
+                self.x,
+                self.v,
+                self.f,
+                s.springs,
+                s.rest,
+                s.k_t,
+                s.k_c,
+                s.beta,
+            )
+        if self.n_bends:
+            self._run(
+                "bending",
+                K.bend_forces,
+                self.x,
+                self.v,
+                self.f,
+                self.bends,
+                self.kw,
+                self.bstiff,
+                self.bbeta,
+            )
+        self._run(
+            "integration",
+            K.explicit_update,
+            self.x,
+            self.xp,
+            self.v,
+            self.f,
+            self.w,
+            self.drag,
+            self.gravity,
+            self.wind,
+            h,
+            e.gravity,
+            e.air_drag or e.wind,
+        )
+        self._pins(s1)
+        self._collide(collider, s0, s1, h)
+        self._run(
+            "integration",
+            K.finish,
+            self.x,
+            self.xp,
+            self.v,
+            self.w,
+            self.contact_n,
+            self.contact_v,
+            h,
+        )
+
+
+def make_solver(name: str, model: ClothModel, effects: Effects, settings: SolverSettings):
+    from datagen.errors import InputError
+
+    if name == "xpbd":
+        return XPBDSolver(model, effects, settings)
+    if name == "explicit":
+        return ExplicitSolver(model, effects, settings)
+    if name == "implicit":
+        from datagen.sim.implicit import ImplicitSolver
+
+        return ImplicitSolver(model, effects, settings)
+    raise InputError(None, "solver", "one of xpbd, explicit, implicit", name)

@@ -1,0 +1,259 @@
+"""The body stage: Anny retargeting, skinning, self-collision detection and repair."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from datagen.body.anny_model import NEUTRAL_SHAPE
+from datagen.body.parts import PART_INDEX, PART_NAMES
+from datagen.body.selfcollision import SelfCollisionDetector, classify, repair_contact
+from datagen.body.sequence import repair_self_collisions
+from datagen.errors import RejectedSequence
+from datagen.recipe import BodyConfig
+from datagen.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from datagen.skeleton import (
+    JOINT_INDEX,
+    NUM_JOINTS,
+    REFERENCE_PELVIS_HEIGHT,
+    REFERENCE_REST_JOINTS,
+    forward_kinematics,
+    world_axes_to_local,
+)
+
+
+@pytest.fixture(scope="module")
+def rest(body_model):
+    return body_model.rest_body("female", NEUTRAL_SHAPE)
+
+
+def pose_from_world_axes(rotations: dict[str, np.ndarray], n_frames: int = 1) -> np.ndarray:
+    """Canonical poses from local rotations written in world axes (easier to reason about)."""
+    local = np.tile(np.eye(3), (n_frames, NUM_JOINTS, 1, 1))
+    for name, aa in rotations.items():
+        local[:, JOINT_INDEX[name]] = axis_angle_to_matrix(np.asarray(aa, dtype=np.float64))
+    return matrix_to_axis_angle(world_axes_to_local(local)).reshape(n_frames, NUM_JOINTS * 3)
+
+
+def test_reference_skeleton_matches_anny(body_model):
+    """The reference skeleton constants in datagen.skeleton are Anny's neutral T-pose."""
+    from datagen.body.anny_model import reference_rest_joints
+
+    joints, height = reference_rest_joints()
+    assert np.abs(joints - REFERENCE_REST_JOINTS).max() < 1e-3
+    assert abs(height - REFERENCE_PELVIS_HEIGHT) < 1e-3
+
+
+def test_rest_body_is_a_t_pose(rest):
+    v, j = rest.vertices, rest.joints
+    assert abs(v[:, 2].min()) < 1e-9  # soles on the ground
+    assert abs(j[0, 0]) < 1e-9 and abs(j[0, 1]) < 1e-9
+    for side, sign in (("left", 1), ("right", -1)):
+        arm = j[JOINT_INDEX[f"{side}_wrist"]] - j[JOINT_INDEX[f"{side}_shoulder"]]
+        assert sign * arm[0] > 0.4 and abs(arm[2]) < 1e-6 and abs(arm[1]) < 1e-6
+    assert 1.5 < v[:, 2].max() < 1.95  # an adult's height
+    # the body faces -y: the toes are in front of the ankles
+    assert j[JOINT_INDEX["left_foot"], 1] < j[JOINT_INDEX["left_ankle"], 1]
+    assert set(np.unique(rest.part_labels)) == set(range(len(PART_NAMES)))
+
+
+def _part_rotation(rest_pts: np.ndarray, posed_pts: np.ndarray) -> np.ndarray:
+    """Best rigid rotation (Kabsch) taking a part's rest vertices to its posed vertices."""
+    a = rest_pts - rest_pts.mean(axis=0)
+    b = posed_pts - posed_pts.mean(axis=0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    return vt.T @ np.diag([1, 1, d]) @ u.T
+
+
+@pytest.mark.parametrize(
+    "joint, child, part, axis_angle",
+    [
+        ("left_shoulder", "left_elbow", "upperarm_l", [0.0, 1.1, 0.0]),  # arm down 63 degrees
+        ("right_shoulder", "right_elbow", "upperarm_r", [0.0, 0.0, 0.9]),  # arm forward
+        ("left_elbow", "left_wrist", "forearm_l", [0.0, 0.0, 1.2]),  # forearm bends forward
+        ("right_hip", "right_knee", "thigh_r", [-0.8, 0.0, 0.0]),  # leg forward
+        ("left_knee", "left_ankle", "shin_l", [1.1, 0.0, 0.0]),  # knee flexion
+        ("spine1", "spine2", "spine_mid", [0.5, 0.0, 0.0]),  # bend forward
+    ],
+)
+def test_retargeting_limb_directions(body_model, rest, joint, child, part, axis_angle):
+    """Rotating one canonical joint moves the matching Anny limb so that its direction agrees
+    with the canonical skeleton's limb within 3 degrees."""
+    poses = pose_from_world_axes({joint: axis_angle})
+    trans = rest.joints[None, 0]
+    posed = body_model.pose(rest, poses, trans)
+    _, joints = forward_kinematics(poses, trans, rest.joints)
+    j, c = JOINT_INDEX[joint], JOINT_INDEX[child]
+    canon_rest = rest.joints[c] - rest.joints[j]
+    canon_posed = joints[0, c] - joints[0, j]
+    # the canonical limb really moved
+    assert (
+        np.degrees(
+            np.arccos(
+                np.dot(canon_rest, canon_posed)
+                / np.linalg.norm(canon_rest)
+                / np.linalg.norm(canon_posed)
+            )
+        )
+        > 25
+    )
+    # the Anny limb: the rigid motion of the part's vertices that skin mostly to it
+    mask = rest.part_labels == PART_INDEX[part]
+    rot = _part_rotation(rest.vertices[mask], posed.vertices[0][mask].astype(np.float64))
+    mesh_dir = rot @ canon_rest
+    cos = np.dot(mesh_dir, canon_posed) / np.linalg.norm(mesh_dir) / np.linalg.norm(canon_posed)
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 3.0
+
+
+def test_skinning_matches_annys_own(body_model, rest):
+    """Our linear blend skinning of the retargeted bones equals Anny's own skinning when Anny is
+    given the same bone world poses."""
+    import torch
+
+    from datagen.body.anny_model import GENDER_VALUE, SHAPE_NAMES, _anny_model
+
+    rng = np.random.default_rng(3)
+    poses = pose_from_world_axes(
+        {
+            "left_shoulder": [0, 0.9, 0.2],
+            "right_elbow": [0, 0, -1.0],
+            "spine2": [0.3, 0.1, 0],
+            "left_knee": [0.9, 0, 0],
+        }
+    )
+    poses[:, :3] = rng.normal(size=3) * 0.3
+    trans = rest.joints[None, 0] + np.array([0.1, -0.2, 0.05])
+    ours = body_model.pose(rest, poses, trans)
+    model = _anny_model()
+    kwargs = {"gender": GENDER_VALUE["female"]}
+    kwargs.update(dict(zip(SHAPE_NAMES, map(float, NEUTRAL_SHAPE), strict=True)))
+    with torch.no_grad():
+        coeffs = model.get_phenotype_blendshape_coefficients(**kwargs)
+        rest_model = model.get_rest_model(coeffs)
+        rest_poses = rest_model["rest_bone_poses"][0].double().numpy()  # (B, 4, 4)
+    t = ours.skinning.transforms[0]  # (B, 3, 4): world = T @ rest
+    world = np.tile(np.eye(4), (len(t), 1, 1))
+    world[:, :3, :] = np.einsum("bij,bjk->bik", t, rest_poses)
+    with torch.no_grad():
+        out = model(
+            pose_parameters=torch.from_numpy(world)[None].to(model.dtype),
+            phenotype_kwargs=kwargs,
+            pose_parameterization="world",
+        )
+    theirs = out["vertices"][0].double().numpy()
+    assert np.abs(theirs - ours.vertices[0]).max() < 2e-4
+
+
+# -- self-collision ----------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def detector(rest):
+    return SelfCollisionDetector(rest.faces, rest.part_labels, rest.vertices)
+
+
+def test_rest_pose_has_no_self_intersection(detector, rest):
+    assert detector.detect(rest.vertices[None].astype(np.float32)) == []
+
+
+def test_forearm_through_torso_is_found_and_rejected(body_model, rest, detector):
+    # Arm down along the side, forearm turned inwards through the waist.
+    poses = pose_from_world_axes(
+        {"left_shoulder": [0.0, 1.45, 0.0], "left_elbow": [0.0, np.pi - 1.45, 0.0]}
+    )
+    posed = body_model.pose(rest, poses, rest.joints[None, 0])
+    contacts = detector.detect(posed.vertices)
+    names = {c.pair_name for c in contacts}
+    assert any("forearm_l" in n for n in names), names
+    verdict = classify(contacts, BodyConfig().max_solvable_extent, BodyConfig().max_solvable_depth)
+    assert verdict.fatal
+    reason, frames = verdict.reason()
+    assert ("forearm_l" in reason or "hand_l" in reason) and frames == (0, 0)
+    assert any("forearm_l" in c.pair_name and c.depth > 0.03 for c in verdict.fatal)
+    with pytest.raises(RejectedSequence, match="forearm_l"):
+        repair_self_collisions(posed.vertices.copy(), rest, BodyConfig(), frozenset())
+
+
+def _gap(vertices, rest, a: str, b: str, near: np.ndarray) -> float:
+    """Smallest distance from part a's vertices near `near` to part b's triangles, over the
+    vertices and triangles that lie apart in the rest pose (the ones that meet at the shoulder
+    are the same skin, not a gap)."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    from datagen.body.selfcollision import LOCAL_RADIUS
+
+    faces, labels = rest.faces, rest.part_labels
+    fb = faces[labels[faces[:, 0]] == PART_INDEX[b]]
+    va = np.flatnonzero(
+        (labels == PART_INDEX[a]) & (np.linalg.norm(vertices - near, axis=1) < 0.15)
+    )
+    rest_b = rest.vertices[np.unique(fb)]
+    far = cKDTree(rest_b).query(rest.vertices[va])[0] > LOCAL_RADIUS
+    va = va[far]
+    mesh_b = trimesh.Trimesh(vertices, fb, process=False)
+    _, dist, _ = trimesh.proximity.closest_point(mesh_b, vertices[va])
+    return float(dist.min())
+
+
+def test_armpit_repair_leaves_a_4mm_gap(body_model, rest, detector):
+    """Arms pressed to the sides: a small armpit intersection, repaired with >= 4 mm gap."""
+    # keep the hands off the thighs: bend the elbows forward
+    poses2 = pose_from_world_axes(
+        {
+            "left_shoulder": [0.0, 1.5, 0.0],
+            "right_shoulder": [0.0, -1.5, 0.0],
+            "left_elbow": [0.0, 0.0, 1.3],
+            "right_elbow": [0.0, 0.0, -1.3],
+        }
+    )
+    posed = body_model.pose(rest, poses2, rest.joints[None, 0])
+    v = posed.vertices.copy()
+    contacts = [c for c in detector.detect(v) if "upperarm_l" in c.pair_name]
+    assert contacts, "the test pose should press the upper arm into the torso"
+    contact = contacts[0]
+    other = (
+        PART_NAMES[contact.part_b]
+        if PART_NAMES[contact.part_a] == "upperarm_l"
+        else PART_NAMES[contact.part_a]
+    )
+    centre = v[0][rest.faces[contact.tri_a].ravel()].mean(axis=0)
+    before = _gap(v[0].astype(np.float64), rest, "upperarm_l", other, centre)
+    assert before < 0.002  # touching or inside
+    offsets = repair_contact(v[0], rest.faces, rest.part_labels, contact, 0.004, rest.vertices)
+    fixed = v[0].astype(np.float64).copy()
+    for i, off in offsets.items():
+        fixed[i] += off
+    after = _gap(fixed, rest, "upperarm_l", other, centre)
+    assert after >= 0.004 - 2e-4
+    assert not [
+        c
+        for c in detector.detect(fixed[None].astype(np.float32))
+        if c.pair_name == contact.pair_name
+    ]
+    # the arm moved, the torso did not
+    moved = np.array(list(offsets))
+    assert np.all(rest.part_labels[moved] == PART_INDEX["upperarm_l"])
+    # and the surface stays smooth: no offset jumps between neighbouring vertices by > 1 cm
+    assert max(np.linalg.norm(o) for o in offsets.values()) < 0.05
+
+
+def test_full_repair_pipeline(body_model, rest):
+    poses = pose_from_world_axes(
+        {
+            "left_shoulder": [0.0, 1.5, 0.0],
+            "right_shoulder": [0.0, -1.5, 0.0],
+            "left_elbow": [0.0, 0.0, 1.3],
+            "right_elbow": [0.0, 0.0, -1.3],
+        },
+        n_frames=3,
+    )
+    posed = body_model.pose(rest, poses, np.repeat(rest.joints[None, 0], 3, axis=0))
+    v = posed.vertices.copy()
+    rf, rv, ro, report = repair_self_collisions(v, rest, BodyConfig(), frozenset())
+    assert report.frames_with_contact == 3
+    assert report.repaired_vertices > 0 and len(rf) == report.repaired_vertices
+    assert report.residual_pairs == 0
+    # the sparse offsets rebuild the repaired vertices exactly from the unrepaired ones
+    rebuilt = posed.vertices.copy()
+    np.add.at(rebuilt, (rf, rv), ro)
+    assert np.abs(rebuilt - v).max() < 1e-5
