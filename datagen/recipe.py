@@ -79,7 +79,12 @@ class BodyConfig:
     repair_gap: float = 0.004  # thesis 3.3.1: 4 mm so that a folded cloth fits
     max_solvable_extent: float = 0.30  # metres: larger intersections are not "small"
     max_solvable_depth: float = 0.03
-    drop_unreached_parts: bool = True  # hands/forearms the outfit never reaches leave the collider
+    drop_unreached_parts: bool = True  # forearms the outfit never reaches leave the collider
+    # Parts no garment covers: never in the cloth collider, so their contacts do not matter.
+    never_collide: list[str] = field(
+        default_factory=lambda: ["hand_l", "hand_r", "foot_l", "foot_r", "head"]
+    )
+    arm_clearance: bool = True  # abduct arms that would sit inside a broad subject's torso
     thinner_retries: int = 1  # retries with a thinner body before rejecting
 
     def validate(self, source, path: str) -> None:
@@ -87,6 +92,13 @@ class BodyConfig:
         check_range(self.max_solvable_extent, 0.0, 1.0, source, f"{path}.max_solvable_extent")
         check_range(self.max_solvable_depth, 0.0, 1.0, source, f"{path}.max_solvable_depth")
         check_range(self.thinner_retries, 0, 5, source, f"{path}.thinner_retries")
+        from datagen.body.parts import PART_NAMES
+
+        for name in self.never_collide:
+            if name not in PART_NAMES:
+                raise InputError(
+                    source, f"{path}.never_collide", f"body parts ({', '.join(PART_NAMES)})", name
+                )
 
 
 @dataclass(frozen=True)

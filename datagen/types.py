@@ -85,6 +85,9 @@ class SelfCollisionReport:
     residual_pairs: int = 0  # after repair
     by_part_pair: dict[str, int] = field(default_factory=dict)
     dropped_parts: tuple[str, ...] = ()
+    arm_clearance_max_deg: float = 0.0  # largest abduction added to fit the arms to the torso
+    arm_clearance_frames: int = 0
+    thinner_retries: int = 0
 
     def as_dict(self) -> dict:
         return {
@@ -96,6 +99,9 @@ class SelfCollisionReport:
             "residual_pairs": self.residual_pairs,
             "by_part_pair": dict(self.by_part_pair),
             "dropped_parts": list(self.dropped_parts),
+            "arm_clearance_max_deg": self.arm_clearance_max_deg,
+            "arm_clearance_frames": self.arm_clearance_frames,
+            "thinner_retries": self.thinner_retries,
         }
 
 

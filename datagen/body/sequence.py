@@ -6,6 +6,7 @@ from collections import defaultdict
 
 import numpy as np
 
+from datagen.body.arm_clearance import clear_arms
 from datagen.body.base import BodyModel
 from datagen.body.parts import PART_INDEX
 from datagen.body.selfcollision import SelfCollisionDetector, classify, repair_contact
@@ -49,12 +50,17 @@ def _detector(rest: RestBody, ignore: frozenset[str]) -> SelfCollisionDetector:
 
 
 def repair_self_collisions(
-    vertices: np.ndarray, rest: RestBody, config: BodyConfig, ignore: frozenset[str]
+    vertices: np.ndarray,
+    rest: RestBody,
+    config: BodyConfig,
+    ignore: frozenset[str],
+    contacts=None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, SelfCollisionReport]:
     """Detect, classify and repair; returns sparse offsets (frames, vertices, offsets) and the
     report, or raises RejectedSequence. `vertices` (F, V, 3) is modified in place."""
     det = _detector(rest, ignore)
-    contacts = det.detect(vertices)
+    if contacts is None:
+        contacts = det.detect(vertices)
     report = SelfCollisionReport(frames_checked=len(vertices), dropped_parts=tuple(sorted(ignore)))
     report.intersecting_pairs = sum(c.n_pairs for c in contacts)
     report.frames_with_contact = len({c.frame for c in contacts})
@@ -115,6 +121,7 @@ def build_body_sequence(
     unknown = [p for p in dropped_parts if p not in PART_INDEX]
     if unknown:
         raise InputError(None, "dropped_parts", "body part names", unknown)
+    dropped_parts = frozenset(dropped_parts) | frozenset(config.never_collide)
     shape = shape_vector(model, subject)
     last_error: RejectedSequence | None = None
     for attempt in range(config.thinner_retries + 1):
@@ -125,7 +132,15 @@ def build_body_sequence(
             shape = thinner(shape)
         rest = model.rest_body(subject.gender, shape)
         moved = add_lead_in(retarget_root(motion, rest.pelvis_height), lead_in)
-        posed = model.pose(rest, moved.poses, moved.trans)
+        poses = moved.poses
+        det = _detector(rest, dropped_parts)
+        if config.arm_clearance:
+            poses, added, posed = clear_arms(
+                model, rest, poses, moved.trans, det, config.repair_gap, moved.fps
+            )
+        else:
+            added = np.zeros((2, len(poses)))
+            posed = model.pose(rest, poses, moved.trans)
         vertices = posed.vertices
         try:
             rep_f, rep_v, rep_o, report = repair_self_collisions(
@@ -134,11 +149,14 @@ def build_body_sequence(
         except RejectedSequence as exc:
             last_error = exc
             continue
+        report.arm_clearance_max_deg = float(np.degrees(added.max(initial=0.0)))
+        report.arm_clearance_frames = int(np.count_nonzero(added.max(axis=0) > 0))
+        report.thinner_retries = attempt
         part_of_face = rest.part_labels[rest.faces[:, 0]]
         dropped_ids = [PART_INDEX[p] for p in dropped_parts]
         return BodySequence(
             rest=rest,
-            poses=moved.poses,
+            poses=poses,
             trans=moved.trans,
             fps=moved.fps,
             action=motion.label,

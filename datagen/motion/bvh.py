@@ -803,12 +803,38 @@ def ground_trans(poses: np.ndarray, trans: np.ndarray, percentile: float = 5.0) 
 # ---------------------------------------------------------------------------------------------
 
 
+# A leading "snap" into the capture: the Daz-friendly converter starts from its rest pose (zero
+# root rotation) and reaches the first captured pose within a few frames (50 rad/s joint speeds),
+# some of its clips with a root glitch too. No body moves like that; in Daz-friendly files these
+# frames are dropped (at most 0.1 s).
+SNAP_ANGULAR_SPEED = 20.0  # rad/s
+SNAP_ROOT_SPEED = 10.0  # m/s
+SNAP_MAX_SECONDS = 0.1
+
+
+def leading_snap_frames(poses: np.ndarray, trans: np.ndarray, fps: float) -> int:
+    """How many frames at the start belong to a converter's snap into the capture."""
+    from datagen.rotations import angular_velocity
+
+    limit = min(int(round(SNAP_MAX_SECONDS * fps)), len(poses) - 1)
+    if limit <= 0:
+        return 0
+    ang = angular_velocity(poses[: limit + 1].reshape(-1, 24, 3), fps).max(axis=1)
+    root = np.linalg.norm(np.diff(trans[: limit + 1], axis=0), axis=1) * fps
+    k = 0
+    while k < limit and (ang[k] > SNAP_ANGULAR_SPEED or root[k] > SNAP_ROOT_SPEED):
+        k += 1
+    return k
+
+
 def load_bvh(
     path: str | Path,
     joint_map: dict[str, str] | None = None,
     label: str | None = None,
 ) -> Motion:
-    """A BVH file as a canonical Motion at the file's own frame rate (see the module docstring)."""
+    """A BVH file as a canonical Motion at the file's own frame rate (see the module docstring).
+
+    A converter's snap into the capture at the start (`leading_snap_frames`) is dropped."""
     path = Path(path)
     clip = parse_bvh(path)
     mapping = _resolve_map(clip, path, joint_map)
@@ -835,7 +861,19 @@ def load_bvh(
     poses = world_to_local(g)
 
     pelvis = _joint_positions(clip, frames, mapping[0], world)
-    trans = ground_trans(poses, scale * pelvis @ a.T)
+    trans = scale * pelvis @ a.T
+    fps = _snap_fps(clip.frame_time)
+    convention = detect_convention(clip.names) if joint_map is None else None
+    snap = 0
+    root_rot = [
+        clip.channel_start[0] + k
+        for k, c in enumerate(clip.channels[0])
+        if c.lower().endswith("rotation")
+    ]
+    if convention == "daz" and np.all(np.abs(frames[0, root_rot]) < 1e-6):
+        snap = leading_snap_frames(poses, trans, fps)
+    poses, trans = poses[snap:], trans[snap:]
+    trans = ground_trans(poses, trans)
     if not (np.all(np.isfinite(poses)) and np.all(np.isfinite(trans))):
         raise InputError(
             path, "MOTION", "rotations and positions that give a finite pose", "non-finite result"
@@ -843,7 +881,7 @@ def load_bvh(
     return Motion(
         poses=poses,
         trans=trans,
-        fps=_snap_fps(clip.frame_time),
+        fps=fps,
         label=label if label is not None else path.stem,
         source=f"bvh:{path.name}",
         pelvis_height=REFERENCE_PELVIS_HEIGHT,

@@ -19,13 +19,15 @@ def init_taichi(arch: str | None = None, threads: int | None = None) -> None:
         return
     import taichi as ti
 
+    from datagen.sim.precision import REAL
+
     arch = arch or os.environ.get("DATAGEN_TI_ARCH", "cpu")
     if threads is None:
         threads = int(os.environ.get("DATAGEN_TI_THREADS", "1"))
     kwargs = dict(
         offline_cache=True,
         log_level=ti.ERROR,
-        default_fp=ti.f32,
+        default_fp=REAL,
         random_seed=0,
     )
     if arch == "cpu":

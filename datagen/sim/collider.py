@@ -9,6 +9,7 @@ import taichi as ti
 
 from datagen.sim import kernels as K
 from datagen.sim.backend import init_taichi
+from datagen.sim.precision import NP_REAL, VEC3
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -20,7 +21,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         for c in range(3):
             n[:, c] += np.bincount(faces[:, k], weights=fn[:, c], minlength=len(vertices))
     norm = np.linalg.norm(n, axis=1, keepdims=True)
-    return (n / np.maximum(norm, 1e-20)).astype(np.float32)
+    return (n / np.maximum(norm, 1e-20)).astype(NP_REAL)
 
 
 def face_adjacency(faces: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -59,10 +60,10 @@ class BodyCollider:
         self.fadj.from_numpy(face_adjacency(self.faces_np, self.mask_np))
         self.mask = ti.ndarray(ti.i32, len(self.faces_np))
         self.mask.from_numpy(self.mask_np.astype(np.int32))
-        self.b0 = ti.ndarray(ti.math.vec3, n_vertices)
-        self.b1 = ti.ndarray(ti.math.vec3, n_vertices)
-        self.n0 = ti.ndarray(ti.math.vec3, n_vertices)
-        self.n1 = ti.ndarray(ti.math.vec3, n_vertices)
+        self.b0 = ti.ndarray(VEC3, n_vertices)
+        self.b1 = ti.ndarray(VEC3, n_vertices)
+        self.n0 = ti.ndarray(VEC3, n_vertices)
+        self.n1 = ti.ndarray(VEC3, n_vertices)
         self._n_cells_alloc = 0
         self.counts = self.starts = self.items = None
         self._items_alloc = 0
@@ -70,8 +71,8 @@ class BodyCollider:
 
     def set_frames(self, v0: np.ndarray, v1: np.ndarray, nrm0=None, nrm1=None) -> None:
         """Body positions at the start and end of the coming frame (interpolated in between)."""
-        self.v0_np = np.asarray(v0, dtype=np.float32)
-        self.v1_np = np.asarray(v1, dtype=np.float32)
+        self.v0_np = np.asarray(v0, dtype=NP_REAL)
+        self.v1_np = np.asarray(v1, dtype=NP_REAL)
         self.b0.from_numpy(self.v0_np)
         self.b1.from_numpy(self.v1_np)
         if nrm0 is None:
@@ -94,7 +95,7 @@ class BodyCollider:
             self.counts = ti.ndarray(ti.i32, self._n_cells_alloc)
             self.starts = ti.ndarray(ti.i32, self._n_cells_alloc + 1)
             self.counts.fill(0)
-        self.origin = ti.math.vec3(*lo.astype(np.float32))
+        self.origin = VEC3(*lo.astype(NP_REAL))
         self.inv_cell = float(1.0 / self.cell)
         self.dims = ti.math.ivec3(*dims.astype(np.int32))
         K.grid_count(

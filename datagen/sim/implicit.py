@@ -16,6 +16,7 @@ import taichi as ti
 
 from datagen.sim import implicit_kernels as IK
 from datagen.sim import kernels as K
+from datagen.sim.precision import NP_REAL, REAL, VEC3, VEC4
 from datagen.sim.solvers import ClothSolver, _nd
 
 
@@ -25,15 +26,15 @@ class ImplicitSolver(ClothSolver):
     def __init__(self, model, effects, settings) -> None:
         super().__init__(model, effects, settings)
         n = self.n
-        self.xn = _nd(ti.math.vec3, model.x0.astype(np.float32))
-        self.g = ti.ndarray(ti.math.vec3, n)
-        self.r = ti.ndarray(ti.math.vec3, n)
-        self.z = ti.ndarray(ti.math.vec3, n)
-        self.p = ti.ndarray(ti.math.vec3, n)
-        self.hp = ti.ndarray(ti.math.vec3, n)
-        self.dx = ti.ndarray(ti.math.vec3, n)
+        self.xn = _nd(VEC3, model.x0.astype(NP_REAL))
+        self.g = ti.ndarray(VEC3, n)
+        self.r = ti.ndarray(VEC3, n)
+        self.z = ti.ndarray(VEC3, n)
+        self.p = ti.ndarray(VEC3, n)
+        self.hp = ti.ndarray(VEC3, n)
+        self.dx = ti.ndarray(VEC3, n)
         self.diag = ti.ndarray(IK.mat3, n)
-        self.mass = _nd(ti.f32, model.mass.astype(np.float32))
+        self.mass = _nd(REAL, model.mass.astype(NP_REAL))
         pinned = np.zeros(n, np.int32)
         if self.n_pins:
             pinned[model.pinned] = 1
@@ -51,19 +52,19 @@ class ImplicitSolver(ClothSolver):
                 [self.sets[s].springs.to_numpy()[: self.sets[s].count] for s in names]
             )
         else:
-            cat = {k: np.zeros(0, np.float32) for k in ("rest", "k_t", "k_c", "beta")}
+            cat = {k: np.zeros(0, NP_REAL) for k in ("rest", "k_t", "k_c", "beta")}
             sp = np.zeros((0, 2), np.int32)
         self.n_springs = len(sp)
         self.all_springs = _nd(ti.math.ivec2, sp.astype(np.int32))
-        self.all_rest = _nd(ti.f32, cat["rest"])
-        self.all_kt = _nd(ti.f32, cat["k_t"])
-        self.all_kc = _nd(ti.f32, cat["k_c"])
-        self.all_beta = _nd(ti.f32, cat["beta"])
+        self.all_rest = _nd(REAL, cat["rest"])
+        self.all_kt = _nd(REAL, cat["k_t"])
+        self.all_kc = _nd(REAL, cat["k_c"])
+        self.all_beta = _nd(REAL, cat["beta"])
         if not self.n_bends:
             self.bends = _nd(ti.math.ivec4, np.zeros((1, 4), np.int32))
-            self.kw = _nd(ti.math.vec4, np.zeros((1, 4), np.float32))
-            self.bstiff = _nd(ti.f32, np.zeros(1, np.float32))
-            self.bbeta = _nd(ti.f32, np.zeros(1, np.float32))
+            self.kw = _nd(VEC4, np.zeros((1, 4), NP_REAL))
+            self.bstiff = _nd(REAL, np.zeros(1, NP_REAL))
+            self.bbeta = _nd(REAL, np.zeros(1, NP_REAL))
         self.newton_iterations = 0
         self.cg_iterations = 0
         self.unconverged = 0

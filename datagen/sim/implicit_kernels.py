@@ -4,21 +4,22 @@ is applied spring by spring and stencil by stencil, never assembled."""
 import taichi as ti
 
 from datagen.sim.kernels import F1, I1, I2, I4, V3, V4, vec3
+from datagen.sim.precision import MAT3, REAL
 
-mat3 = ti.math.mat3
+mat3 = MAT3
 M3 = ti.types.ndarray(dtype=mat3, ndim=1)
 
 
 @ti.func
-def spring_hessian(d: vec3, rest: ti.f32, k: ti.f32) -> mat3:
+def spring_hessian(d: vec3, rest: REAL, k: REAL) -> mat3:
     """Hessian block of 1/2 k (|d| - rest)^2, projected to be positive semi-definite."""
     length = d.norm()
-    out = ti.Matrix.zero(ti.f32, 3, 3)
+    out = ti.Matrix.zero(REAL, 3, 3)
     if length > 1e-9:
         n = d / length
         nn = n.outer_product(n)
         coef = ti.max(1.0 - rest / length, 0.0)  # the compressive part is indefinite: dropped
-        out = k * (nn + coef * (ti.Matrix.identity(ti.f32, 3) - nn))
+        out = k * (nn + coef * (ti.Matrix.identity(REAL, 3) - nn))
     return out
 
 
@@ -33,7 +34,7 @@ def gradient(
     g: V3,
     gravity: vec3,
     wind: vec3,
-    h: ti.f32,
+    h: REAL,
     use_gravity: ti.template(),
     use_air: ti.template(),
 ):
@@ -49,7 +50,7 @@ def gradient(
 
 @ti.kernel
 def spring_gradient(
-    x: V3, xn: V3, g: V3, springs: I2, rest: F1, k_t: F1, k_c: F1, beta: F1, h: ti.f32
+    x: V3, xn: V3, g: V3, springs: I2, rest: F1, k_t: F1, k_c: F1, beta: F1, h: REAL
 ):
     for e in range(springs.shape[0]):
         i = springs[e][0]
@@ -69,7 +70,7 @@ def spring_gradient(
 
 
 @ti.kernel
-def bend_gradient(x: V3, xn: V3, g: V3, bends: I4, kw: V4, stiff: F1, beta: F1, h: ti.f32):
+def bend_gradient(x: V3, xn: V3, g: V3, bends: I4, kw: V4, stiff: F1, beta: F1, h: REAL):
     for b in range(bends.shape[0]):
         s = bends[b]
         k = kw[b]
@@ -100,7 +101,7 @@ def diagonal(
     kw: V4,
     stiff: F1,
     bbeta: F1,
-    h: ti.f32,
+    h: REAL,
     n_springs: ti.i32,
     n_bends: ti.i32,
     use_air: ti.template(),
@@ -110,7 +111,7 @@ def diagonal(
         dd = mass[i] / (h * h)
         if ti.static(use_air):
             dd += drag[i] / h
-        diag[i] = dd * ti.Matrix.identity(ti.f32, 3)
+        diag[i] = dd * ti.Matrix.identity(REAL, 3)
     for e in range(n_springs):
         i = springs[e][0]
         j = springs[e][1]
@@ -130,14 +131,14 @@ def diagonal(
         k = kw[b]
         coef = stiff[b] * (1.0 + bbeta[b] / h)
         for q in ti.static(range(4)):
-            diag[s[q]] += coef * k[q] * k[q] * ti.Matrix.identity(ti.f32, 3)
+            diag[s[q]] += coef * k[q] * k[q] * ti.Matrix.identity(REAL, 3)
 
 
 @ti.kernel
 def invert_blocks(diag: M3, pinned: I1):
     for i in diag:
         if pinned[i] != 0:
-            diag[i] = ti.Matrix.zero(ti.f32, 3, 3)
+            diag[i] = ti.Matrix.zero(REAL, 3, 3)
         else:
             diag[i] = diag[i].inverse()
 
@@ -159,7 +160,7 @@ def hessian_product(
     stiff: F1,
     bbeta: F1,
     pinned: I1,
-    h: ti.f32,
+    h: REAL,
     n_springs: ti.i32,
     n_bends: ti.i32,
     use_air: ti.template(),
@@ -214,14 +215,14 @@ def dot(a: V3, b: V3) -> ti.f64:
 
 
 @ti.kernel
-def axpy(y: V3, a: ti.f32, x: V3):
+def axpy(y: V3, a: REAL, x: V3):
     """y += a x"""
     for i in y:
         y[i] += a * x[i]
 
 
 @ti.kernel
-def xpay(y: V3, a: ti.f32, x: V3):
+def xpay(y: V3, a: REAL, x: V3):
     """y = x + a y"""
     for i in y:
         y[i] = x[i] + a * y[i]
@@ -237,7 +238,7 @@ def negate_filtered(src: V3, dst: V3, pinned: I1):
 
 
 @ti.kernel
-def max_norm(a: V3) -> ti.f32:
+def max_norm(a: V3) -> REAL:
     m = 0.0
     for i in a:
         ti.atomic_max(m, a[i].norm())
@@ -245,7 +246,7 @@ def max_norm(a: V3) -> ti.f32:
 
 
 @ti.kernel
-def inertial_guess(x: V3, xn: V3, vn: V3, pinned: I1, h: ti.f32):
+def inertial_guess(x: V3, xn: V3, vn: V3, pinned: I1, h: REAL):
     for i in x:
         xn[i] = x[i]
         if pinned[i] == 0:

@@ -7,10 +7,12 @@ exact, the CPU default) and Jacobi (parallel-safe, for GPU backends).
 
 import taichi as ti
 
-vec3 = ti.math.vec3
+from datagen.sim.precision import REAL, VEC3, VEC4
+
+vec3 = VEC3
 V3 = ti.types.ndarray(dtype=vec3, ndim=1)
-V4 = ti.types.ndarray(dtype=ti.math.vec4, ndim=1)
-F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
+V4 = ti.types.ndarray(dtype=VEC4, ndim=1)
+F1 = ti.types.ndarray(dtype=REAL, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 I2 = ti.types.ndarray(dtype=ti.math.ivec2, ndim=1)
 I3 = ti.types.ndarray(dtype=ti.math.ivec3, ndim=1)
@@ -19,7 +21,7 @@ I4 = ti.types.ndarray(dtype=ti.math.ivec4, ndim=1)
 
 # -- geometry ----------------------------------------------------------------------------------
 @ti.func
-def closest_on_triangle(p: vec3, a: vec3, b: vec3, c: vec3) -> ti.math.vec4:
+def closest_on_triangle(p: vec3, a: vec3, b: vec3, c: vec3) -> VEC4:
     """Barycentric (u, v, w) of the closest point of triangle abc to p, and its squared
     distance (Ericson, Real-Time Collision Detection 5.1.5, written from the math)."""
     ab = b - a
@@ -58,7 +60,7 @@ def closest_on_triangle(p: vec3, a: vec3, b: vec3, c: vec3) -> ti.math.vec4:
         w = vc * denom
         bary = vec3(1.0 - v - w, v, w)
     q = bary[0] * a + bary[1] * b + bary[2] * c
-    return ti.math.vec4(bary[0], bary[1], bary[2], (p - q).norm_sqr())
+    return VEC4(bary[0], bary[1], bary[2], (p - q).norm_sqr())
 
 
 @ti.func
@@ -82,7 +84,7 @@ def plane_barycentric(p: vec3, a: vec3, b: vec3, c: vec3) -> vec3:
 
 
 @ti.func
-def lerp3(a: vec3, b: vec3, s: ti.f32) -> vec3:
+def lerp3(a: vec3, b: vec3, s: REAL) -> vec3:
     return a + s * (b - a)
 
 
@@ -97,7 +99,7 @@ def predict_one(
     drag: F1,
     gravity: vec3,
     wind: vec3,
-    h: ti.f32,
+    h: REAL,
     use_gravity: ti.template(),
     use_air: ti.template(),
 ):
@@ -123,7 +125,7 @@ def predict(
     drag: F1,
     gravity: vec3,
     wind: vec3,
-    h: ti.f32,
+    h: REAL,
     use_gravity: ti.template(),
     use_air: ti.template(),
 ):
@@ -132,7 +134,7 @@ def predict(
 
 
 @ti.func
-def finish_one(i: ti.i32, x: V3, xp: V3, v: V3, w: F1, contact_n: V3, contact_v: V3, h: ti.f32):
+def finish_one(i: ti.i32, x: V3, xp: V3, v: V3, w: F1, contact_n: V3, contact_v: V3, h: REAL):
     """End of a substep: velocities from positions; contacts do not bounce (inelastic)."""
     vi = (x[i] - xp[i]) / h
     if w[i] > 0.0:
@@ -145,7 +147,7 @@ def finish_one(i: ti.i32, x: V3, xp: V3, v: V3, w: F1, contact_n: V3, contact_v:
 
 
 @ti.kernel
-def finish(x: V3, xp: V3, v: V3, w: F1, contact_n: V3, contact_v: V3, h: ti.f32):
+def finish(x: V3, xp: V3, v: V3, w: F1, contact_n: V3, contact_v: V3, h: REAL):
     for i in x:
         finish_one(i, x, xp, v, w, contact_n, contact_v, h)
 
@@ -171,12 +173,12 @@ def spring_delta(
     beta: F1,
     lam: F1,
     e: ti.i32,
-    h: ti.f32,
-) -> ti.math.vec4:
+    h: REAL,
+) -> VEC4:
     """XPBD update of spring e: (dlambda * n, dlambda) with n from x_i to x_j."""
     i = springs[e][0]
     j = springs[e][1]
-    out = ti.math.vec4(0.0)
+    out = VEC4(0.0)
     wsum = w[i] + w[j]
     d = x[j] - x[i]
     length = d.norm()
@@ -190,7 +192,7 @@ def spring_delta(
         gamma = beta[e] / h
         rate = n.dot((x[j] - xp[j]) - (x[i] - xp[i]))
         dl = (-c - alpha * lam[e] - gamma * rate) / ((1.0 + gamma) * wsum + alpha)
-        out = ti.math.vec4(dl * n, dl)
+        out = VEC4(dl * n, dl)
     return out
 
 
@@ -206,8 +208,8 @@ def spring_gs_one(
     comp_c: F1,
     beta: F1,
     lam: F1,
-    h: ti.f32,
-    omega: ti.f32,
+    h: REAL,
+    omega: REAL,
 ):
     r = omega * spring_delta(x, xp, w, springs, rest, comp_t, comp_c, beta, lam, e, h)
     lam[e] += r[3]
@@ -229,9 +231,9 @@ def springs_gauss_seidel(
     comp_c: F1,
     beta: F1,
     lam: F1,
-    h: ti.f32,
+    h: REAL,
     reverse: ti.i32,
-    omega: ti.f32,
+    omega: REAL,
 ):
     n_springs = springs.shape[0]
     ti.loop_config(serialize=True)
@@ -244,7 +246,7 @@ def springs_gauss_seidel(
 
 @ti.func
 def bend_delta(
-    x: V3, xp: V3, w: F1, bends: I4, kw: V4, comp: F1, beta: F1, lam_b: V3, b: ti.i32, h: ti.f32
+    x: V3, xp: V3, w: F1, bends: I4, kw: V4, comp: F1, beta: F1, lam_b: V3, b: ti.i32, h: REAL
 ) -> vec3:
     """XPBD update of the (linear, vector-valued) bending constraint b: its dlambda."""
     s = bends[b]
@@ -281,8 +283,8 @@ def bend_gs_one(
     comp: F1,
     beta: F1,
     lam_b: V3,
-    h: ti.f32,
-    omega: ti.f32,
+    h: REAL,
+    omega: REAL,
 ):
     dl = omega * bend_delta(x, xp, w, bends, kw, comp, beta, lam_b, b, h)
     lam_b[b] += dl
@@ -302,9 +304,9 @@ def bends_gauss_seidel(
     comp: F1,
     beta: F1,
     lam_b: V3,
-    h: ti.f32,
+    h: REAL,
     reverse: ti.i32,
-    omega: ti.f32,
+    omega: REAL,
 ):
     n_bends = bends.shape[0]
     ti.loop_config(serialize=True)
@@ -327,7 +329,7 @@ def springs_jacobi(
     beta: F1,
     lam: F1,
     out: V3,
-    h: ti.f32,
+    h: REAL,
 ):
     for e in range(springs.shape[0]):
         r = spring_delta(x, xp, w, springs, rest, comp_t, comp_c, beta, lam, e, h)
@@ -337,7 +339,7 @@ def springs_jacobi(
 
 @ti.kernel
 def bends_jacobi(
-    x: V3, xp: V3, w: F1, bends: I4, kw: V4, comp: F1, beta: F1, lam_b: V3, out: V3, h: ti.f32
+    x: V3, xp: V3, w: F1, bends: I4, kw: V4, comp: F1, beta: F1, lam_b: V3, out: V3, h: REAL
 ):
     for b in range(bends.shape[0]):
         dl = bend_delta(x, xp, w, bends, kw, comp, beta, lam_b, b, h)
@@ -357,7 +359,7 @@ def apply_jacobi(
     b_slot: I1,
     b_dl: V3,
     kw: V4,
-    omega: ti.f32,
+    omega: REAL,
 ):
     """Gather the Jacobi corrections of each vertex's springs (signed refs) and bends."""
     for i in range(x.shape[0]):
@@ -414,7 +416,7 @@ def explicit_update(
     drag: F1,
     gravity: vec3,
     wind: vec3,
-    h: ti.f32,
+    h: REAL,
     use_gravity: ti.template(),
     use_air: ti.template(),
 ):
@@ -434,7 +436,7 @@ def explicit_update(
 
 # -- pins --------------------------------------------------------------------------------------
 @ti.kernel
-def apply_pins(x: V3, pin_idx: I1, t0: V3, t1: V3, s: ti.f32):
+def apply_pins(x: V3, pin_idx: I1, t0: V3, t1: V3, s: REAL):
     for p in pin_idx:
         x[pin_idx[p]] = lerp3(t0[p], t1[p], s)
 
@@ -453,15 +455,15 @@ def collide_one(
     b1: V3,
     n0: V3,
     n1: V3,
-    s0: ti.f32,
-    s1: ti.f32,
+    s0: REAL,
+    s1: REAL,
     thickness: F1,
     friction: F1,
-    recover: ti.f32,
-    release: ti.f32,
+    recover: REAL,
+    release: REAL,
     contact_n: V3,
     contact_v: V3,
-    h: ti.f32,
+    h: REAL,
     use_friction: ti.template(),
 ):
     """Keep cloth vertex i `thickness` outside the moving body surface (interpolated between
@@ -553,15 +555,15 @@ def collide_body(
     b1: V3,
     n0: V3,
     n1: V3,
-    s0: ti.f32,
-    s1: ti.f32,
+    s0: REAL,
+    s1: REAL,
     thickness: F1,
     friction: F1,
-    recover: ti.f32,
-    release: ti.f32,
+    recover: REAL,
+    release: REAL,
     contact_n: V3,
     contact_v: V3,
-    h: ti.f32,
+    h: REAL,
     use_friction: ti.template(),
 ):
     for i in x:
@@ -597,7 +599,7 @@ def grid_count(
     faces: I3,
     mask: I1,
     origin: vec3,
-    inv_cell: ti.f32,
+    inv_cell: REAL,
     dims: ti.math.ivec3,
     counts: I1,
 ):
@@ -638,7 +640,7 @@ def grid_fill(
     faces: I3,
     mask: I1,
     origin: vec3,
-    inv_cell: ti.f32,
+    inv_cell: REAL,
     dims: ti.math.ivec3,
     counts: I1,
     starts: I1,
@@ -674,12 +676,12 @@ def nearest_one(
     b1: V3,
     faces: I3,
     origin: vec3,
-    inv_cell: ti.f32,
+    inv_cell: REAL,
     dims: ti.math.ivec3,
     starts: I1,
     items: I1,
-    s: ti.f32,
-    max_dist: ti.f32,
+    s: REAL,
+    max_dist: REAL,
     tri: I1,
     only_untracked: ti.i32,
 ):
@@ -725,12 +727,12 @@ def grid_nearest(
     b1: V3,
     faces: I3,
     origin: vec3,
-    inv_cell: ti.f32,
+    inv_cell: REAL,
     dims: ti.math.ivec3,
     starts: I1,
     items: I1,
-    s: ti.f32,
-    max_dist: ti.f32,
+    s: REAL,
+    max_dist: REAL,
     tri: I1,
     only_untracked: ti.i32,
 ):
@@ -792,19 +794,19 @@ def xpbd_frame(
     contact_n: V3,
     contact_v: V3,
     origin: vec3,
-    inv_cell: ti.f32,
+    inv_cell: REAL,
     dims: ti.math.ivec3,
     starts: I1,
     items: I1,
-    cell: ti.f32,
+    cell: REAL,
     gravity: vec3,
     wind: vec3,
-    h: ti.f32,
+    h: REAL,
     n_sub: ti.i32,
     n_iter: ti.i32,
     sweep0: ti.i32,
-    omega: ti.f32,
-    recover: ti.f32,
+    omega: REAL,
+    recover: REAL,
     use_gravity: ti.template(),
     use_air: ti.template(),
     use_collision: ti.template(),

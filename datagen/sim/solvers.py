@@ -25,6 +25,7 @@ from datagen.sim import kernels as K
 from datagen.sim.backend import init_taichi, serial
 from datagen.sim.effects import Effects
 from datagen.sim.model import SHEAR, STRUCTURAL, ClothModel
+from datagen.sim.precision import NP_REAL, REAL, VEC3, VEC4
 
 
 @dataclass(frozen=True)
@@ -52,14 +53,14 @@ class _SpringSet:
     def __init__(self, model: ClothModel, select: np.ndarray) -> None:
         self.count = int(select.sum())
         self.springs = _nd(ti.math.ivec2, model.springs[select].astype(np.int32))
-        self.rest = _nd(ti.f32, model.rest_length[select].astype(np.float32))
-        self.k_t = _nd(ti.f32, model.k_tension[select].astype(np.float32))
-        self.k_c = _nd(ti.f32, model.k_compression[select].astype(np.float32))
-        self.comp_t = _nd(ti.f32, (1.0 / model.k_tension[select]).astype(np.float32))
-        self.comp_c = _nd(ti.f32, (1.0 / model.k_compression[select]).astype(np.float32))
-        self.beta = _nd(ti.f32, model.spring_beta[select].astype(np.float32))
-        self.lam = _nd(ti.f32, np.zeros(self.count, np.float32))
-        self.out = ti.ndarray(ti.math.vec3, max(self.count, 1))
+        self.rest = _nd(REAL, model.rest_length[select].astype(NP_REAL))
+        self.k_t = _nd(REAL, model.k_tension[select].astype(NP_REAL))
+        self.k_c = _nd(REAL, model.k_compression[select].astype(NP_REAL))
+        self.comp_t = _nd(REAL, (1.0 / model.k_tension[select]).astype(NP_REAL))
+        self.comp_c = _nd(REAL, (1.0 / model.k_compression[select]).astype(NP_REAL))
+        self.beta = _nd(REAL, model.spring_beta[select].astype(NP_REAL))
+        self.lam = _nd(REAL, np.zeros(self.count, NP_REAL))
+        self.out = ti.ndarray(VEC3, max(self.count, 1))
         self.index = np.flatnonzero(select)
 
 
@@ -75,22 +76,22 @@ class ClothSolver:
         self.settings = settings
         n = model.n_vertices
         self.n = n
-        self.x = _nd(ti.math.vec3, model.x0.astype(np.float32))
-        self.xp = _nd(ti.math.vec3, model.x0.astype(np.float32))
-        self.v = _nd(ti.math.vec3, np.zeros((n, 3), np.float32))
-        w = model.inv_mass.astype(np.float32)
+        self.x = _nd(VEC3, model.x0.astype(NP_REAL))
+        self.xp = _nd(VEC3, model.x0.astype(NP_REAL))
+        self.v = _nd(VEC3, np.zeros((n, 3), NP_REAL))
+        w = model.inv_mass.astype(NP_REAL)
         if not effects.pins:
-            w = (1.0 / model.mass).astype(np.float32)
+            w = (1.0 / model.mass).astype(NP_REAL)
         self.w_np = w
-        self.w = _nd(ti.f32, w)
-        self.drag = _nd(ti.f32, model.air_drag.astype(np.float32))
-        self.thickness = _nd(ti.f32, model.thickness.astype(np.float32))
-        self.friction = _nd(ti.f32, model.friction.astype(np.float32))
+        self.w = _nd(REAL, w)
+        self.drag = _nd(REAL, model.air_drag.astype(NP_REAL))
+        self.thickness = _nd(REAL, model.thickness.astype(NP_REAL))
+        self.friction = _nd(REAL, model.friction.astype(NP_REAL))
         self.tri = _nd(ti.i32, -np.ones(n, np.int32))
-        self.contact_n = _nd(ti.math.vec3, np.zeros((n, 3), np.float32))
-        self.contact_v = _nd(ti.math.vec3, np.zeros((n, 3), np.float32))
-        self.gravity = ti.math.vec3(*settings.gravity)
-        self.wind = ti.math.vec3(*(settings.wind if effects.wind else (0.0, 0.0, 0.0)))
+        self.contact_n = _nd(VEC3, np.zeros((n, 3), NP_REAL))
+        self.contact_v = _nd(VEC3, np.zeros((n, 3), NP_REAL))
+        self.gravity = VEC3(*settings.gravity)
+        self.wind = VEC3(*(settings.wind if effects.wind else (0.0, 0.0, 0.0)))
         self.sets: dict[str, _SpringSet] = {}
         kinds = [
             ("stretch", effects.stretch, (model.spring_kind == STRUCTURAL) & ~model.spring_elastic),
@@ -107,17 +108,17 @@ class ClothSolver:
         self.n_bends = len(model.bends) if effects.bending else 0
         if self.n_bends:
             self.bends = _nd(ti.math.ivec4, model.bends)
-            self.kw = _nd(ti.math.vec4, model.bend_weights.astype(np.float32))
-            self.bstiff = _nd(ti.f32, model.bend_stiffness.astype(np.float32))
-            self.bcomp = _nd(ti.f32, (1.0 / model.bend_stiffness).astype(np.float32))
-            self.bbeta = _nd(ti.f32, model.bend_beta.astype(np.float32))
-            self.lam_b = ti.ndarray(ti.math.vec3, self.n_bends)
-            self.b_out = ti.ndarray(ti.math.vec3, self.n_bends)
+            self.kw = _nd(VEC4, model.bend_weights.astype(NP_REAL))
+            self.bstiff = _nd(REAL, model.bend_stiffness.astype(NP_REAL))
+            self.bcomp = _nd(REAL, (1.0 / model.bend_stiffness).astype(NP_REAL))
+            self.bbeta = _nd(REAL, model.bend_beta.astype(NP_REAL))
+            self.lam_b = ti.ndarray(VEC3, self.n_bends)
+            self.b_out = ti.ndarray(VEC3, self.n_bends)
         self.n_pins = len(model.pinned) if effects.pins else 0
         if self.n_pins:
             self.pin_idx = _nd(ti.i32, model.pinned.astype(np.int32))
-            self.pin_t0 = ti.ndarray(ti.math.vec3, self.n_pins)
-            self.pin_t1 = ti.ndarray(ti.math.vec3, self.n_pins)
+            self.pin_t0 = ti.ndarray(VEC3, self.n_pins)
+            self.pin_t1 = ti.ndarray(VEC3, self.n_pins)
         self.costs: dict[str, float] = defaultdict(float)
         self.launches: dict[str, int] = defaultdict(int)
         self._sweep = 0
@@ -127,13 +128,13 @@ class ClothSolver:
         return self.x.to_numpy().astype(np.float64), self.v.to_numpy().astype(np.float64)
 
     def set_state(self, x: np.ndarray, v: np.ndarray) -> None:
-        self.x.from_numpy(np.asarray(x, np.float32))
-        self.v.from_numpy(np.asarray(v, np.float32))
+        self.x.from_numpy(np.asarray(x, NP_REAL))
+        self.v.from_numpy(np.asarray(v, NP_REAL))
 
     def set_pin_targets(self, t0: np.ndarray, t1: np.ndarray) -> None:
         if self.n_pins:
-            self.pin_t0.from_numpy(np.asarray(t0, np.float32))
-            self.pin_t1.from_numpy(np.asarray(t1, np.float32))
+            self.pin_t0.from_numpy(np.asarray(t0, NP_REAL))
+            self.pin_t1.from_numpy(np.asarray(t1, NP_REAL))
 
     # -- timing ------------------------------------------------------------------------------
     def _run(self, effect: str, fn, *args) -> None:
@@ -235,28 +236,28 @@ class XPBDSolver(ClothSolver):
                 ranges.append((lo, lo + s.count))
                 lo += s.count
             self.f_springs = _nd(ti.math.ivec2, springs)
-            self.f_rest = _nd(ti.f32, cat("rest", np.float32))
-            self.f_comp_t = _nd(ti.f32, cat("comp_t", np.float32))
-            self.f_comp_c = _nd(ti.f32, cat("comp_c", np.float32))
-            self.f_beta = _nd(ti.f32, cat("beta", np.float32))
-            self.f_lam = _nd(ti.f32, np.zeros(len(springs), np.float32))
+            self.f_rest = _nd(REAL, cat("rest", NP_REAL))
+            self.f_comp_t = _nd(REAL, cat("comp_t", NP_REAL))
+            self.f_comp_c = _nd(REAL, cat("comp_c", NP_REAL))
+            self.f_beta = _nd(REAL, cat("beta", NP_REAL))
+            self.f_lam = _nd(REAL, np.zeros(len(springs), NP_REAL))
             self.f_ranges = _nd(ti.math.ivec2, np.asarray(ranges, np.int32))
             self.f_nsets = len(ranges)
         else:
             self.f_springs = _nd(ti.math.ivec2, np.zeros((1, 2), np.int32))
             self.f_rest = self.f_comp_t = self.f_comp_c = self.f_beta = self.f_lam = _nd(
-                ti.f32, np.zeros(1, np.float32)
+                REAL, np.zeros(1, NP_REAL)
             )
             self.f_ranges = _nd(ti.math.ivec2, np.zeros((1, 2), np.int32))
             self.f_nsets = 0
         if not self.n_bends:
             self.bends = _nd(ti.math.ivec4, np.zeros((1, 4), np.int32))
-            self.kw = _nd(ti.math.vec4, np.zeros((1, 4), np.float32))
-            self.bcomp = self.bbeta = _nd(ti.f32, np.zeros(1, np.float32))
-            self.lam_b = ti.ndarray(ti.math.vec3, 1)
+            self.kw = _nd(VEC4, np.zeros((1, 4), NP_REAL))
+            self.bcomp = self.bbeta = _nd(REAL, np.zeros(1, NP_REAL))
+            self.lam_b = ti.ndarray(VEC3, 1)
         if not self.n_pins:
             self.pin_idx = _nd(ti.i32, np.zeros(1, np.int32))
-            self.pin_t0 = self.pin_t1 = ti.ndarray(ti.math.vec3, 1)
+            self.pin_t0 = self.pin_t1 = ti.ndarray(VEC3, 1)
         self._dummy_collider = None
 
     def advance_frame(self, collider, n_sub: int, h: float, profile: bool = False) -> None:
@@ -331,7 +332,7 @@ class XPBDSolver(ClothSolver):
         if self._dummy_collider is None:
             from types import SimpleNamespace
 
-            v3 = ti.ndarray(ti.math.vec3, 1)
+            v3 = ti.ndarray(VEC3, 1)
             i3 = _nd(ti.math.ivec3, np.zeros((1, 3), np.int32))
             i1 = _nd(ti.i32, np.zeros(2, np.int32))
             self._dummy_collider = SimpleNamespace(
@@ -341,7 +342,7 @@ class XPBDSolver(ClothSolver):
                 b1=v3,
                 n0=v3,
                 n1=v3,
-                origin=ti.math.vec3(0.0),
+                origin=VEC3(0.0),
                 inv_cell=1.0,
                 dims=ti.math.ivec3(1, 1, 1),
                 starts=i1,
@@ -515,7 +516,7 @@ _DUMMY: dict = {}
 
 def _dummy_vec4():
     if "v4" not in _DUMMY:
-        _DUMMY["v4"] = ti.ndarray(ti.math.vec4, 1)
+        _DUMMY["v4"] = ti.ndarray(VEC4, 1)
     return _DUMMY["v4"]
 
 
@@ -524,7 +525,7 @@ class ExplicitSolver(ClothSolver):
 
     def __init__(self, model, effects, settings) -> None:
         super().__init__(model, effects, settings)
-        self.f = _nd(ti.math.vec3, np.zeros((self.n, 3), np.float32))
+        self.f = _nd(VEC3, np.zeros((self.n, 3), NP_REAL))
 
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
         e = self.effects

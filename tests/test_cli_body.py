@@ -1,0 +1,133 @@
+"""`datagen body` and `datagen inspect` end to end, and their handling of bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_smpl import make_model  # noqa: E402
+
+DATAGEN = [sys.executable, "-m", "datagen.cli"]
+
+
+def run(*args, cwd=None) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    return subprocess.run(
+        [*DATAGEN, *map(str, args)], capture_output=True, text=True, cwd=cwd, env=env, timeout=600
+    )
+
+
+def test_body_walk_and_inspect(tmp_path):
+    out = tmp_path / "b.h5"
+    r = run("body", "--motion", "walk", "--frames", 120, "--out", out)
+    assert r.returncode == 0, r.stderr
+    r = run("inspect", out, "--json")
+    assert r.returncode == 0, r.stderr
+    tree = json.loads(r.stdout)
+    (seq,) = tree["sequences"]
+    body = tree["groups"]["sequences"]["groups"][seq]["groups"]["body"]
+    assert body["datasets"]["poses"]["shape"] == [120, 72]
+    assert body["datasets"]["trans"]["shape"] == [120, 3]
+    assert body["attrs"]["model"] == "anny"
+    assert body["attrs"]["shape_names"] == ["age", "muscle", "weight", "height", "proportions"]
+    text = run("inspect", out)
+    assert "poses (120, 72) float64" in text.stdout
+
+
+def test_body_from_bvh(tmp_path, cmu_dir):
+    out = tmp_path / "c.h5"
+    r = run("body", "--bvh", cmu_dir / "02_04_daz.bvh", "--frames", 120, "--out", out)
+    assert r.returncode == 0, r.stderr
+    from datagen.io.shard import ShardReader
+
+    with ShardReader(out) as reader:
+        (seq,) = reader.sequence_ids()
+        g = reader.group(seq)
+        assert g["body"]["poses"].shape == (120, 72)
+        assert g.attrs["action"] == "02_04_daz"
+        v = reader.body_vertices(seq)
+        assert v.shape == (120, 13348, 3) and np.isfinite(v).all()
+        assert abs(float(v[:, :, 2].min())) < 0.08  # feet near the ground
+
+
+def _bad_inputs(tmp_path: Path, cmu_dir: Path) -> dict[str, tuple[list, str]]:
+    """name -> (CLI arguments, text the error line must contain)."""
+    text = (cmu_dir / "12_01_mb.bvh").read_text()
+    truncated = tmp_path / "truncated.bvh"
+    truncated.write_text(text[: len(text) // 2])
+    unknown = tmp_path / "robot.bvh"
+    unknown.write_text(
+        "HIERARCHY\nROOT base\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition "
+        "Zrotation Xrotation Yrotation\n JOINT arm\n {\n  OFFSET 0 1 0\n  CHANNELS 3 Zrotation "
+        "Xrotation Yrotation\n  End Site\n  {\n   OFFSET 0 1 0\n  }\n }\n}\nMOTION\nFrames: 2\n"
+        "Frame Time: 0.0333\n0 0 0 0 0 0 0 0 0\n0 0 0 0 0 0 0 0 0\n"
+    )
+    no_poses = tmp_path / "no_poses.npz"
+    np.savez(no_poses, trans=np.zeros((10, 3)), mocap_framerate=30.0)
+    bad_smpl = tmp_path / "bad_smpl.npz"
+    arrays = make_model()
+    arrays["weights"] = arrays["weights"][:, :23]
+    np.savez(bad_smpl, **arrays)
+    evil = tmp_path / "evil.pkl"
+
+    class Evil:
+        def __reduce__(self):
+            return (os.system, (f"touch {tmp_path / 'pwned'}",))
+
+    evil.write_bytes(pickle.dumps(dict(make_model(), v_template=Evil()), protocol=2))
+    yaml_key = tmp_path / "recipe.yaml"
+    yaml_key.write_text("name: x\nseed: 1\nsequences: 2\nmotoin: {frames: 10}\n")
+    return {
+        "truncated bvh": (["--bvh", truncated], "truncated.bvh"),
+        "unknown skeleton": (["--bvh", unknown], "robot.bvh"),
+        "npz without poses": (["--amass", no_poses], "no_poses.npz: field 'poses'"),
+        "smpl wrong shapes": (
+            ["--body-model", "smpl", "--smpl-model", bad_smpl],
+            "bad_smpl.npz: field 'weights'",
+        ),
+        "foreign pickle": (
+            ["--body-model", "smpl", "--smpl-model", evil],
+            "evil.pkl: field 'pickle'",
+        ),
+        "yaml unknown key": (["--pipeline", yaml_key], "recipe.yaml: field 'motoin'"),
+    }
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        "truncated bvh",
+        "unknown skeleton",
+        "npz without poses",
+        "smpl wrong shapes",
+        "foreign pickle",
+        "yaml unknown key",
+    ],
+)
+def test_bad_input_is_one_line_and_leaves_nothing(tmp_path, cmu_dir, case):
+    args, expected = _bad_inputs(tmp_path, cmu_dir)[case]
+    out = tmp_path / "out.h5"
+    r = run("body", *args, "--frames", 30, "--out", out)
+    assert r.returncode != 0
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, r.stderr
+    assert lines[0].startswith("error: ") and expected in lines[0], lines[0]
+    assert "Traceback" not in r.stderr
+    assert not out.exists() and not Path(str(out) + ".tmp").exists()
+    assert not (tmp_path / "pwned").exists()
+
+
+def test_help_is_useful():
+    r = run("--help")
+    assert r.returncode == 0 and "body" in r.stdout and "inspect" in r.stdout
+    r = run("body", "--help")
+    for option in ("--motion", "--bvh", "--amass", "--frames", "--gender", "--out"):
+        assert option in r.stdout
