@@ -78,7 +78,7 @@ def render_views(
             col.from_numpy(np.tile(np.asarray(layer.colour, np.float32), (len(f), 1)))
             # Screen y points down, so the screen-space normal of a front face points to -z;
             # the light comes from the viewer's upper left.
-            light = ti.math.vec3(-0.3, -0.4, -0.87)
+            light = ti.math.vec3(-0.55, -0.45, -0.70)
             RK.rasterise(pos_nd, faces_nd, col, depth, image, light, int(layer.two_sided))
         panels.append(image.to_numpy())
     out = np.concatenate(panels, axis=1)

@@ -36,7 +36,7 @@ def rasterise(
             shade = n.dot(light)
             if two_sided != 0:
                 shade = ti.abs(shade)
-            shade = 0.25 + 0.75 * ti.max(shade, 0.0)
+            shade = 0.18 + 0.82 * ti.max(shade, 0.0) ** 2
             x0 = ti.max(ti.cast(ti.floor(ti.min(a[0], ti.min(b[0], c[0]))), ti.i32), 0)
             x1 = ti.min(ti.cast(ti.ceil(ti.max(a[0], ti.max(b[0], c[0]))), ti.i32), w - 1)
             y0 = ti.max(ti.cast(ti.floor(ti.min(a[1], ti.min(b[1], c[1]))), ti.i32), 0)

@@ -158,6 +158,7 @@ class Garment:
     pinned: np.ndarray | None = None  # vertex ids attached to the body (e.g. a waistband)
     tightness: tuple[float, float] = (0.0, 0.0)
     layer: int = 0  # 0 = innermost
+    seams: np.ndarray | None = None  # (K, 2) vertex pairs pulled together (panels being sewn)
     meta: dict = field(default_factory=dict)  # shaping/cut parameters, template name, ...
 
     @property

@@ -9,7 +9,7 @@ import taichi as ti
 
 from datagen.sim import kernels as K
 from datagen.sim.backend import init_taichi
-from datagen.sim.precision import NP_REAL, VEC3
+from datagen.sim.precision import NP_REAL, REAL, VEC3
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -70,17 +70,25 @@ class BodyCollider:
         self._prev = None
 
     def set_frames(self, v0: np.ndarray, v1: np.ndarray, nrm0=None, nrm1=None) -> None:
-        """Body positions at the start and end of the coming frame (interpolated in between)."""
-        self.v0_np = np.asarray(v0, dtype=NP_REAL)
-        self.v1_np = np.asarray(v1, dtype=NP_REAL)
-        self.b0.from_numpy(self.v0_np)
-        self.b1.from_numpy(self.v1_np)
-        if nrm0 is None:
-            nrm0 = vertex_normals(self.v0_np, self.faces_np)
-        if nrm1 is None:
-            nrm1 = vertex_normals(self.v1_np, self.faces_np)
-        self.n0.from_numpy(nrm0)
-        self.n1.from_numpy(nrm1)
+        """Body positions at the start and end of the coming frame (interpolated in between).
+        Consecutive frames share a pose: when v0 is the previous call's v1, its arrays are
+        reused instead of uploaded again."""
+        v0 = np.asarray(v0, dtype=NP_REAL)
+        v1 = np.asarray(v1, dtype=NP_REAL)
+        prev = getattr(self, "v1_np", None)
+        if prev is not None and prev.shape == v0.shape and np.array_equal(prev, v0):
+            self.b0, self.b1 = self.b1, self.b0
+            self.n0, self.n1 = self.n1, self.n0
+        else:
+            self.b0.from_numpy(v0)
+            self.n0.from_numpy(vertex_normals(v0, self.faces_np) if nrm0 is None else nrm0)
+        self.v0_np, self.v1_np = v0, v1
+        if np.array_equal(v0, v1):
+            self.b1.copy_from(self.b0)
+            self.n1.copy_from(self.n0)
+        else:
+            self.b1.from_numpy(v1)
+            self.n1.from_numpy(vertex_normals(v1, self.faces_np) if nrm1 is None else nrm1)
         self._build_grid()
 
     def _build_grid(self) -> None:
@@ -128,22 +136,52 @@ class BodyCollider:
         # grid_fill used counts as cursors; they must be zero for the next frame's counting.
         self.counts.fill(0)
 
-    def nearest(self, x, w, tri, s: float, only_untracked: bool = False) -> None:
+    def signed_distance_tracked(self, x, tri) -> np.ndarray:
+        """Signed distance of the cloth vertices (device arrays) to the triangles they track, at
+        the end of the current frame; `cell` where a vertex tracks none (it is far away)."""
+        n = x.shape[0]
+        if getattr(self, "_sdt_n", None) != n:
+            self._sdt_n = n
+            self._sdt_out = ti.ndarray(REAL, n)
+        K.signed_distance_to_tracked(x, tri, self.faces, self.b1, self.n1, float(self.cell),
+                                     self._sdt_out)
+        return self._sdt_out.to_numpy().astype(np.float64)
+
+    def signed_distance(self, x: np.ndarray) -> np.ndarray:
+        """Signed distance of points (N, 3) to the collider surface at the end of the current
+        frame (positive outside; `cell` or more where no triangle is within a grid cell)."""
+        n = len(x)
+        if getattr(self, "_sd_n", None) != n:
+            self._sd_n = n
+            self._sd_x = ti.ndarray(VEC3, n)
+            self._sd_w = ti.ndarray(REAL, n)
+            self._sd_w.fill(1.0)
+            self._sd_tri = ti.ndarray(ti.i32, n)
+            self._sd_out = ti.ndarray(REAL, n)
+        self._sd_x.from_numpy(np.asarray(x, dtype=NP_REAL))
+        self.nearest(self._sd_x, self._sd_w, self._sd_tri, 1.0)  # every vertex: a full search
+        K.signed_distance_to_tracked(self._sd_x, self._sd_tri, self.faces, self.b1, self.n1,
+                                     float(self.cell), self._sd_out)
+        return self._sd_out.to_numpy().astype(np.float64)
+
+    def nearest(self, x, w, tri, s: float, only_untracked: bool = False, skip=None,
+                approach: float = 0.0) -> None:
         """Reset each cloth vertex's tracked triangle to the closest one within a grid cell
-        (or only find one for vertices that track none)."""
-        K.grid_nearest(
-            x,
-            w,
-            self.b0,
-            self.b1,
-            self.faces,
-            self.origin,
-            self.inv_cell,
-            self.dims,
-            self.starts,
-            self.items,
-            float(s),
-            float(self.cell),
-            tri,
-            int(only_untracked),
-        )
+        (or only find one for vertices that track none, skipping those that cannot be near)."""
+        if skip is None:
+            skip = self._scratch_skip(x.shape[0])
+        K.grid_nearest(x, w, self.b0, self.b1, self.faces, self.origin, self.inv_cell,
+                       self.dims, self.starts, self.items, float(s), float(self.cell), tri,
+                       int(only_untracked), skip, float(approach))
+
+    def _scratch_skip(self, n: int):
+        if getattr(self, "_skip_n", None) != n:
+            self._skip_n = n
+            self._skip = ti.ndarray(ti.i32, n)
+        self._skip.fill(0)
+        return self._skip
+
+    @property
+    def max_speed(self) -> float:
+        """Fastest body vertex in the current frame, in metres per frame."""
+        return float(np.linalg.norm(self.v1_np - self.v0_np, axis=1).max())

@@ -147,6 +147,15 @@ def finish_one(i: ti.i32, x: V3, xp: V3, v: V3, w: F1, contact_n: V3, contact_v:
 
 
 @ti.kernel
+def finish_contacts(x: V3, xp: V3, v: V3, w: F1, contact_n: V3, contact_v: V3, h: REAL):
+    """For force-based solvers: only vertices a contact moved take their velocity from positions
+    (elsewhere re-deriving it from float positions would add round-off to every step)."""
+    for i in x:
+        if contact_n[i].norm_sqr() > 0.0:
+            finish_one(i, x, xp, v, w, contact_n, contact_v, h)
+
+
+@ti.kernel
 def finish(x: V3, xp: V3, v: V3, w: F1, contact_n: V3, contact_v: V3, h: REAL):
     for i in x:
         finish_one(i, x, xp, v, w, contact_n, contact_v, h)
@@ -684,11 +693,22 @@ def nearest_one(
     max_dist: REAL,
     tri: I1,
     only_untracked: ti.i32,
+    skip: I1,
+    approach: REAL,
 ):
     """The closest collider triangle to cloth vertex i within `max_dist` (else -1), at body
     positions interpolated at fraction s, searching the 27 grid cells around the vertex.
-    With `only_untracked`, a vertex that already tracks a triangle keeps it."""
-    if w[i] > 0.0 and (only_untracked == 0 or tri[i] < 0):
+    With `only_untracked`, a vertex that already tracks a triangle keeps it, and one whose last
+    search found nothing skips the searches it cannot need: `skip[i]` counts the substeps in
+    which neither it nor the body (together at most `approach` metres per substep) can close
+    the distance it was known to be away."""
+    searched = False
+    if only_untracked == 0:
+        skip[i] = 0
+    if w[i] > 0.0 and only_untracked != 0 and tri[i] < 0 and skip[i] > 0:
+        skip[i] -= 1
+    elif w[i] > 0.0 and (only_untracked == 0 or tri[i] < 0):
+        searched = True
         p = x[i]
         cell = ti.cast(ti.floor((p - origin) * inv_cell), ti.i32)
         best = max_dist * max_dist
@@ -717,6 +737,10 @@ def nearest_one(
                         best = r[3]
                         best_t = t
         tri[i] = best_t
+        if best_t < 0 and approach > 0.0:
+            skip[i] = ti.min(ti.cast(0.8 * max_dist / approach, ti.i32), 64)
+    if searched and tri[i] >= 0:
+        skip[i] = 0
 
 
 @ti.kernel
@@ -735,6 +759,8 @@ def grid_nearest(
     max_dist: REAL,
     tri: I1,
     only_untracked: ti.i32,
+    skip: I1,
+    approach: REAL,
 ):
     for i in x:
         nearest_one(
@@ -753,6 +779,8 @@ def grid_nearest(
             max_dist,
             tri,
             only_untracked,
+            skip,
+            approach,
         )
 
 
@@ -807,6 +835,8 @@ def xpbd_frame(
     sweep0: ti.i32,
     omega: REAL,
     recover: REAL,
+    skip: I1,
+    approach: REAL,
     use_gravity: ti.template(),
     use_air: ti.template(),
     use_collision: ti.template(),
@@ -846,7 +876,8 @@ def xpbd_frame(
         if ti.static(use_collision):
             for i in range(n):
                 nearest_one(
-                    i, x, w, b0, b1, faces, origin, inv_cell, dims, starts, items, s1, cell, tri, 1
+                    i, x, w, b0, b1, faces, origin, inv_cell, dims, starts, items, s1, cell, tri, 1,
+                    skip, approach,
                 )
             for i in range(n):
                 collide_one(
@@ -874,3 +905,21 @@ def xpbd_frame(
                 )
         for i in range(n):
             finish_one(i, x, xp, v, w, contact_n, contact_v, h)
+
+
+@ti.kernel
+def signed_distance_to_tracked(x: V3, tri: I1, faces: I3, b: V3, n: V3, far: REAL, out: F1):
+    """Signed distance of each vertex to its (already found) closest collider triangle, using the
+    interpolated vertex normals for the sign; `far` where no triangle is near."""
+    for i in x:
+        t = tri[i]
+        d = far
+        if t >= 0:
+            f = faces[t]
+            r = closest_on_triangle(x[i], b[f[0]], b[f[1]], b[f[2]])
+            q = r[0] * b[f[0]] + r[1] * b[f[1]] + r[2] * b[f[2]]
+            nrm = r[0] * n[f[0]] + r[1] * n[f[1]] + r[2] * n[f[2]]
+            nl = nrm.norm()
+            if nl > 1e-12:
+                d = (x[i] - q).dot(nrm / nl)
+        out[i] = d

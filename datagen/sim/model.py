@@ -23,7 +23,8 @@ import numpy as np
 from datagen.sim.fabrics import Fabric
 from datagen.types import Garment
 
-STRUCTURAL, SHEAR = 0, 1
+STRUCTURAL, SHEAR, SEAM = 0, 1, 2
+SEAM_STIFFNESS = 20.0  # sewing springs (zero rest length) are this many times the fabric's
 ELASTIC_LENGTH = 0.85  # elastic bands gather the fabric: 15 % shorter rest length
 ELASTIC_STIFFNESS = 5.0  # and stiffer than the fabric
 
@@ -182,6 +183,16 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
         k_t = np.where(is_elastic, k_t * ELASTIC_STIFFNESS, k_t)
         k_c = np.where(is_elastic, k_c * ELASTIC_STIFFNESS, k_c)
         st, sw, sa = bending_stencils(rest, f, e, adj)
+        if garment.seams is not None and len(garment.seams):
+            # Sewing: zero-length springs between the panel edges being stitched.
+            seam = np.asarray(garment.seams, dtype=np.int64)
+            k_seam = np.full(len(seam), SEAM_STIFFNESS * fabric.stretch)
+            e = np.concatenate([e, seam])
+            length = np.concatenate([length, np.zeros(len(seam))])
+            k_t = np.concatenate([k_t, k_seam])
+            k_c = np.concatenate([k_c, k_seam])
+            k_kind = np.concatenate([k_kind, np.full(len(seam), SEAM, dtype=np.int8)])
+            is_elastic = np.concatenate([is_elastic, np.zeros(len(seam), dtype=bool)])
 
         xs.append(x)
         faces.append(f + offset)

@@ -24,7 +24,7 @@ import taichi as ti
 from datagen.sim import kernels as K
 from datagen.sim.backend import init_taichi, serial
 from datagen.sim.effects import Effects
-from datagen.sim.model import SHEAR, STRUCTURAL, ClothModel
+from datagen.sim.model import SEAM, SHEAR, STRUCTURAL, ClothModel
 from datagen.sim.precision import NP_REAL, REAL, VEC3, VEC4
 
 
@@ -88,6 +88,7 @@ class ClothSolver:
         self.thickness = _nd(REAL, model.thickness.astype(NP_REAL))
         self.friction = _nd(REAL, model.friction.astype(NP_REAL))
         self.tri = _nd(ti.i32, -np.ones(n, np.int32))
+        self.skip = _nd(ti.i32, np.zeros(n, np.int32))
         self.contact_n = _nd(VEC3, np.zeros((n, 3), NP_REAL))
         self.contact_v = _nd(VEC3, np.zeros((n, 3), NP_REAL))
         self.gravity = VEC3(*settings.gravity)
@@ -97,6 +98,7 @@ class ClothSolver:
             ("stretch", effects.stretch, (model.spring_kind == STRUCTURAL) & ~model.spring_elastic),
             ("shear", effects.shear, (model.spring_kind == SHEAR) & ~model.spring_elastic),
             ("elastic", effects.elastic, model.spring_elastic),
+            ("seams", True, model.spring_kind == SEAM),
         ]
         for name, on, select in kinds:
             if on and select.any():
@@ -154,7 +156,8 @@ class ClothSolver:
         recover = self.settings.recover_speed * h
         # Vertices that track no triangle look for one at every substep (cheap: they are far
         # from the body, in empty cells), so fast limbs and falling cloth are caught in time.
-        self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s1, True)
+        self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s1, True,
+                  self.skip, self._approach(collider, h))
         self._run(
             "body_collision",
             K.collide_body,
@@ -183,7 +186,14 @@ class ClothSolver:
     def search(self, collider, s: float) -> None:
         """Global closest-triangle search (once per frame, or when the body moves fast)."""
         if collider is not None and self.effects.body_collision:
-            self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s)
+            self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s, False,
+                      self.skip, 0.0)
+
+    def _approach(self, collider, h: float) -> float:
+        """How far a cloth vertex and the body can close in on each other in one substep: the
+        body's fastest vertex plus a generous cloth speed (metres)."""
+        fps_h = h * self.settings.substeps  # one frame, in seconds
+        return collider.max_speed * h / fps_h + 10.0 * h
 
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
         raise NotImplementedError
@@ -318,6 +328,8 @@ class XPBDSolver(ClothSolver):
             self._sweep,
             self.settings.sor,
             self.settings.recover_speed * h,
+            self.skip,
+            self._approach(c, h) if use_collision else 0.0,
             e.gravity,
             e.air_drag or e.wind,
             use_collision,
@@ -573,7 +585,7 @@ class ExplicitSolver(ClothSolver):
         self._collide(collider, s0, s1, h)
         self._run(
             "integration",
-            K.finish,
+            K.finish_contacts,
             self.x,
             self.xp,
             self.v,

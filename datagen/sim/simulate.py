@@ -1,0 +1,400 @@
+"""The simulation stage: an outfit on a moving body -> per-frame garment vertices and QA.
+
+Timeline: the outfit settles on the body in its rest pose, follows the lead-in from rest to the
+sequence's first frame, then the sequence; frames after the lead-in are the output (at the body
+sequence's frame rate). Each frame is guarded: non-finite positions, runaway speeds or a kinetic
+energy blow-up make the frame run again from its start with twice, then four times the substeps;
+a frame that still fails rejects the sequence with the reason instead of writing it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from datagen.errors import InputError, RejectedSequence
+from datagen.sim.collider import BodyCollider, vertex_normals
+from datagen.sim.effects import Effects, SceneContent, resolve_effects
+from datagen.sim.fabrics import Fabric, get_fabric
+from datagen.sim.model import SHEAR, STRUCTURAL, ClothModel, build_cloth_model
+from datagen.sim.solvers import SolverSettings, make_solver
+from datagen.types import BodySequence, Garment, SimResult
+
+# Quality presets per solver: substeps per frame and iterations (docs/accuracy-vs-time.md says
+# where each sits on the measured accuracy/time front).
+QUALITY_PRESETS: dict[str, dict[str, tuple[int, int]]] = {
+    "xpbd": {"draft": (10, 1), "default": (20, 1), "reference": (200, 1)},
+    "explicit": {"draft": (200, 1), "default": (400, 1), "reference": (2000, 1)},
+    "implicit": {"draft": (2, 4), "default": (5, 10), "reference": (50, 20)},
+}
+MAX_RETRIES = 2
+SPEED_LIMIT = 15.0  # m/s: a cloth vertex faster than this and 3x the body's fastest is runaway
+
+
+@dataclass
+class SimOptions:
+    solver: str = "xpbd"
+    quality: str = "default"
+    substeps: int | None = None
+    iterations: int | None = None
+    effects: str | tuple[str, ...] = "auto"
+    wind: tuple[float, float, float] | None = None
+    settle_seconds: float = 0.5
+    fabrics: dict[str, Fabric] = field(default_factory=dict)  # user fabrics by name
+    profile_every: int = 30  # frames between per-effect cost samples (fused solvers)
+    search_every: int = 5  # frames between full closest-triangle searches
+    frames: int = 30  # output frames of a scene without a collider track
+
+    def resolve_steps(self) -> tuple[int, int]:
+        presets = QUALITY_PRESETS.get(self.solver)
+        if presets is None:
+            raise InputError(None, "solver", f"one of {', '.join(QUALITY_PRESETS)}", self.solver)
+        if self.quality not in presets:
+            raise InputError(None, "quality", f"one of {', '.join(presets)}", self.quality)
+        sub, it = presets[self.quality]
+        return self.substeps or sub, self.iterations or it
+
+
+@dataclass
+class _Pins:
+    """Pinned cloth vertices attached to body triangles: a barycentric point on the triangle and
+    the offset to the cloth vertex in the triangle's own frame, so the pin follows the surface
+    exactly where the body moves rigidly and smoothly where it deforms."""
+
+    triangles: np.ndarray  # (P,)
+    bary: np.ndarray  # (P, 3)
+    local: np.ndarray  # (P, 3) offset in the triangle frame (edge, side, normal)
+
+    @staticmethod
+    def frames(corners: np.ndarray) -> np.ndarray:
+        """(P, 3, 3) orthonormal frames (rows: edge, in-plane side, normal) of triangles."""
+        e1 = corners[:, 1] - corners[:, 0]
+        n = np.cross(e1, corners[:, 2] - corners[:, 0])
+        e1 /= np.linalg.norm(e1, axis=1, keepdims=True) + 1e-20
+        n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-20
+        return np.stack([e1, np.cross(n, e1), n], axis=1)
+
+    def targets(self, body: np.ndarray, faces: np.ndarray) -> np.ndarray:
+        corners = body[faces[self.triangles]]
+        point = np.einsum("pk,pkd->pd", self.bary, corners)
+        return point + np.einsum("pid,pi->pd", self.frames(corners), self.local)
+
+
+def attach_pins(points: np.ndarray, body: np.ndarray, faces: np.ndarray,
+                mask: np.ndarray) -> _Pins | None:
+    """Attach cloth points to their closest (collider) body triangles in the given body pose."""
+    import trimesh
+
+    if len(points) == 0:
+        return None
+    used = np.flatnonzero(mask)
+    mesh = trimesh.Trimesh(body, faces[used], process=False)
+    closest, _, tri = trimesh.proximity.closest_point(mesh, points)
+    tri_full = used[tri]
+    corners = body[faces[tri_full]]
+    bary = trimesh.triangles.points_to_barycentric(corners, closest)
+    local = np.einsum("pid,pd->pi", _Pins.frames(corners), points - closest)
+    return _Pins(tri_full, bary, local)
+
+
+def scene_content(garments: list[Garment], has_body: bool, wind, fabrics) -> SceneContent:
+    return SceneContent(
+        has_body=has_body,
+        n_garments=len(garments),
+        categories=tuple(g.category for g in garments),
+        tightness=tuple(tuple(g.tightness) for g in garments),
+        has_elastic=any(g.elastic for g in garments),
+        has_pins=any(g.pinned is not None and len(g.pinned) for g in garments),
+        wants_wind=wind is not None and any(abs(w) > 0 for w in wind),
+        max_friction=max(f.friction for f in fabrics),
+    )
+
+
+def _qa(model: ClothModel, x: np.ndarray, v: np.ndarray, sd: np.ndarray | None) -> dict:
+    fabric_springs = np.isin(model.spring_kind, (STRUCTURAL, SHEAR)) & ~model.spring_elastic
+    e = model.springs[fabric_springs]
+    length = np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1)
+    strain = length / np.maximum(model.rest_length[fabric_springs], 1e-12) - 1.0
+    over = strain > model.max_strain[fabric_springs]
+    out = {
+        "strain_mean": float(np.mean(np.abs(strain))),
+        "strain_max": float(strain.max()),
+        "strain_p999": float(np.percentile(strain, 99.9)),
+        "over_strain_share": float(over.mean()),
+        "kinetic_energy": float(0.5 * np.sum(model.mass * np.sum(v * v, axis=1))),
+    }
+    if sd is not None:
+        thick = model.thickness
+        out["inside_share"] = float(np.mean(sd < 0.0))
+        out["deep_share"] = float(np.mean(sd < -thick))
+    else:
+        out["inside_share"] = out["deep_share"] = 0.0
+    return out
+
+
+def signed_distances(x: np.ndarray, body: np.ndarray, faces: np.ndarray, mask: np.ndarray,
+                     normals: np.ndarray) -> np.ndarray:
+    """Signed distance of each cloth vertex to the collider body surface (QA, once per frame)."""
+    import trimesh
+
+    used = np.flatnonzero(mask)
+    mesh = trimesh.Trimesh(body, faces[used], process=False)
+    closest, dist, tri = trimesh.proximity.closest_point(mesh, x)
+    f = faces[used[tri]]
+    bary = trimesh.triangles.points_to_barycentric(body[f], closest)
+    n = np.einsum("pk,pkd->pd", bary, normals[f])
+    sign = np.sign(np.einsum("pd,pd->p", x - closest, n))
+    sign[sign == 0] = 1.0
+    return sign * dist
+
+
+@dataclass
+class ColliderTrack:
+    """What the simulator needs of a moving collider: its frames, faces and which faces collide.
+    A BodySequence provides one (`track_of`); tests and studies build them for spheres and
+    cylinders."""
+
+    vertices: np.ndarray  # (F, V, 3)
+    faces: np.ndarray  # (T, 3)
+    face_mask: np.ndarray  # (T,) bool
+    fps: float = 30.0
+    lead_in_frames: int = 0
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.vertices.shape[0])
+
+
+def track_of(body: BodySequence) -> ColliderTrack:
+    return ColliderTrack(body.vertices, body.rest.faces, body.collider_face_mask, body.fps,
+                         body.lead_in_frames)
+
+
+def body_start_transform(body: BodySequence) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation and translation taking the rest body (pelvis above the origin, facing -y) to the
+    sequence's first frame (the rest pose, turned to the motion's heading and placed where the
+    lead-in starts): garments fitted to the rest body are moved with it."""
+    from datagen.rotations import axis_angle_to_matrix
+
+    rot = axis_angle_to_matrix(body.poses[0, :3])
+    return rot, body.trans[0] - rot @ body.rest.joints[0]
+
+
+class _Simulation:
+    def __init__(self, garments: list[Garment], body: ColliderTrack | None, options: SimOptions,
+                 start: tuple[np.ndarray, np.ndarray] | None = None):
+        self.garments = garments
+        self.body = body
+        self.options = options
+        self.fabrics = [get_fabric(g.fabric, options.fabrics) for g in garments]
+        self.model = build_cloth_model(list(zip(garments, self.fabrics, strict=True)))
+        if start is not None:
+            rot, shift = start
+            self.model.x0 = self.model.x0 @ rot.T + shift
+        content = scene_content(garments, body is not None, options.wind, self.fabrics)
+        self.effects: Effects = resolve_effects(options.effects, content)
+        self.substeps, self.iterations = options.resolve_steps()
+        self.fps = body.fps if body is not None else 30.0
+        if body is not None:
+            self.faces = np.asarray(body.faces)
+            self.mask = np.asarray(body.face_mask, dtype=bool)
+            self.collider = BodyCollider(self.faces, self.mask, body.vertices.shape[1])
+            self.normals_cache: dict[int, np.ndarray] = {}
+        else:
+            self.collider = None
+        self.pins = None
+        self.fixed_pins = None
+        if self.effects.pins and len(self.model.pinned):
+            if body is not None:
+                self.pins = attach_pins(self.model.x0[self.model.pinned],
+                                        body.vertices[0].astype(np.float64), self.faces,
+                                        self.mask)
+            else:  # no body to hold them: pinned vertices stay where they start
+                self.fixed_pins = self.model.x0[self.model.pinned].copy()
+        self.retries = 0
+        self.frame_substeps: list[int] = []
+
+    def _normals(self, f: int) -> np.ndarray:
+        n = self.normals_cache.get(f)
+        if n is None:
+            n = vertex_normals(self.body.vertices[f], self.faces)
+            if len(self.normals_cache) > 4:
+                self.normals_cache.clear()
+            self.normals_cache[f] = n
+        return n
+
+    def _solver(self, substeps: int):
+        settings = SolverSettings(
+            substeps=substeps,
+            iterations=self.iterations,
+            wind=tuple(self.options.wind) if self.options.wind else (0.0, 0.0, 0.0),
+        )
+        return make_solver(self.options.solver, self.model, self.effects, settings)
+
+    def _set_body(self, solver, f0: int, f1: int) -> None:
+        if self.fixed_pins is not None:
+            solver.set_pin_targets(self.fixed_pins, self.fixed_pins)
+        if self.collider is None:
+            return
+        b = self.body.vertices
+        n0, n1 = self._normals(f0), self._normals(f1)
+        self.collider.set_frames(b[f0], b[f1], n0, n1)
+        if self.pins is not None:
+            t0 = self.pins.targets(b[f0].astype(np.float64), self.faces)
+            t1 = self.pins.targets(b[f1].astype(np.float64), self.faces)
+            solver.set_pin_targets(t0, t1)
+
+    def _speed_limit(self, f0: int, f1: int) -> float:
+        if self.body is None:
+            return SPEED_LIMIT
+        body_speed = np.linalg.norm(
+            self.body.vertices[f1] - self.body.vertices[f0], axis=1).max() * self.fps
+        return max(SPEED_LIMIT, 3.0 * float(body_speed))
+
+    def _frame(self, solver, f0: int, f1: int, profile: bool, search: bool = True) -> str | None:
+        """Advance one frame; returns a failure reason or None."""
+        self._set_body(solver, f0, f1)
+        if search:
+            # A full closest-triangle search lets vertices move to another body part; between
+            # searches they follow their triangles and untracked ones are searched every substep.
+            solver.search(self.collider, 1.0)
+        h = 1.0 / self.fps / solver.settings.substeps
+        solver.advance_frame(self.collider, solver.settings.substeps, h, profile)
+        x, v = solver.get_state()
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
+            return "non-finite positions"
+        speed = float(np.linalg.norm(v, axis=1).max())
+        limit = self._speed_limit(f0, f1)
+        if speed > limit:
+            return f"runaway velocity {speed:.1f} m/s (limit {limit:.1f})"
+        ke = 0.5 * np.sum(self.model.mass * np.sum(v * v, axis=1))
+        if ke > 0.5 * self.model.mass.sum() * limit**2 * 0.25:
+            return f"kinetic energy blow-up ({ke:.3g} J)"
+        return None
+
+    def run(self) -> SimResult:
+        t_start = time.perf_counter()
+        self.solvers = {self.substeps: self._solver(self.substeps)}
+        self.solver = self.solvers[self.substeps]
+        body = self.body
+        n_body = body.n_frames if body is not None else self.options.frames + 1
+        lead_in = body.lead_in_frames if body is not None else 0
+        settle = int(round(self.options.settle_seconds * self.fps))
+        outputs: dict[str, list] = {g.name: [] for g in self.garments}
+        qa_rows: list[dict] = []
+        step = 0
+        for _ in range(settle):  # the outfit settles on the rest pose
+            self._advance(0, 0, step, lead_in)
+            step += 1
+        if lead_in == 0:
+            self._record(0, outputs, qa_rows)
+        for f0 in range(n_body - 1):
+            self._advance(f0, f0 + 1, step, lead_in)
+            step += 1
+            if f0 + 1 >= lead_in:
+                self._record(f0 + 1, outputs, qa_rows)
+        wall = time.perf_counter() - t_start
+        return self._result(outputs, qa_rows, wall, settle)
+
+    def _advance(self, f0: int, f1: int, step: int, lead_in: int) -> None:
+        """One frame, retried with more substeps when a stability guard trips."""
+        solver = self.solver
+        x0, v0 = solver.get_state()
+        tri0 = solver.tri.to_numpy()
+        every = self.options.profile_every
+        search = step % self.options.search_every == 0
+        reason = self._frame(solver, f0, f1, every > 0 and step % every == 0, search)
+        attempt = 0
+        while reason is not None:
+            attempt += 1
+            if attempt > MAX_RETRIES:
+                frame = max(f1 - lead_in, 0)
+                raise RejectedSequence(
+                    "simulate",
+                    f"unstable at frame {frame}: {reason}, still after {MAX_RETRIES} retries "
+                    f"with up to {self.substeps * 2**MAX_RETRIES} substeps",
+                    (max(f0 - lead_in, 0), frame),
+                )
+            self.retries += 1
+            sub = self.substeps * 2**attempt
+            if sub not in self.solvers:
+                self.solvers[sub] = self._solver(sub)
+            retry = self.solvers[sub]
+            retry.set_state(x0, v0)
+            retry.tri.from_numpy(tri0)
+            reason = self._frame(retry, f0, f1, True)
+            if reason is None:
+                x, v = retry.get_state()
+                solver.set_state(x, v)
+                solver.tri.from_numpy(retry.tri.to_numpy())
+        self.frame_substeps.append(self.substeps * 2**attempt)
+
+    def _record(self, body_frame: int, outputs, qa_rows) -> None:
+        x, v = self.solver.get_state()
+        for g, (lo, hi) in zip(self.garments, self.model.garment_ranges, strict=True):
+            outputs[g.name].append(x[lo:hi].astype(np.float32))
+        sd = None
+        if self.collider is not None and self.effects.body_collision:
+            # The collider holds this frame's body as its end position; the solver's vertices
+            # track their closest triangles, so no new search is needed.
+            sd = self.collider.signed_distance_tracked(self.solver.x, self.solver.tri)
+        qa_rows.append(_qa(self.model, x, v, sd))
+
+    def _result(self, outputs, qa_rows, wall, settle) -> SimResult:
+        costs: dict[str, float] = {}
+        launches: dict[str, int] = {}
+        for s in self.solvers.values():
+            for k, v in s.costs.items():
+                costs[k] = costs.get(k, 0.0) + v
+            for k, v in s.launches.items():
+                launches[k] = launches.get(k, 0) + v
+        qa = {k: np.array([row[k] for row in qa_rows], dtype=np.float32) for k in qa_rows[0]}
+        n_frames = len(qa_rows)
+        report = {
+            "solver": self.options.solver,
+            "quality": self.options.quality,
+            "substeps": self.substeps,
+            "iterations": self.iterations,
+            "effects": self.effects.enabled(),
+            "effect_costs_s": _effect_costs(costs),
+            "kernel_launches": launches,
+            "wall_time_s": wall,
+            "retries": self.retries,
+            "settle_frames": settle,
+            "frames": n_frames,
+            "vertices": self.model.n_vertices,
+            "simulated_seconds_per_wall_second": (len(self.frame_substeps) / self.fps) / wall,
+            "frame_substeps_max": max(self.frame_substeps, default=self.substeps),
+        }
+        return SimResult(
+            garment_names=[g.name for g in self.garments],
+            vertices={name: np.stack(frames) for name, frames in outputs.items()},
+            qa=qa,
+            report=report,
+        )
+
+
+def _effect_costs(costs: dict[str, float]) -> dict[str, float]:
+    """Seconds per effect. Frames run by the fused kernel are attributed in proportion to the
+    per-effect kernels of the profiled frames."""
+    fused = costs.pop("fused_frame", 0.0)
+    total = sum(costs.values())
+    if fused > 0 and total > 0:
+        return {k: v + fused * v / total for k, v in costs.items()}
+    if fused > 0:
+        return {"all": fused}
+    return dict(costs)
+
+
+def simulate(garments: list[Garment], body: BodySequence | ColliderTrack | None,
+             options: SimOptions | None = None) -> SimResult:
+    """Simulate the garments on a body sequence (garments fitted to its rest body move with it
+    to where the sequence starts), on a collider track, or in free space (body None)."""
+    if not garments:
+        raise InputError(None, "outfit", "at least one garment", "none")
+    if isinstance(body, BodySequence):
+        return _Simulation(garments, track_of(body), options or SimOptions(),
+                           body_start_transform(body)).run()
+    return _Simulation(garments, body, options or SimOptions()).run()
