@@ -103,3 +103,30 @@ def render_sequence(
     """Images of every frame with one camera framing for the whole sequence (no jitter)."""
     bounds = _frame_bounds(frames)
     return [render_views(layers, views, height, bounds) for layers in frames]
+
+
+def preview_record(path: str | Path, record, every: int = 2, height: int = 320) -> None:
+    """Render a simulated sequence record: GIF (every `every`-th frame) or PNG (4 frames)."""
+    body = record.body
+    start = body.lead_in_frames
+    n = body.n_frames - start
+    colours = {g.name: GARMENT_COLOURS[k % len(GARMENT_COLOURS)]
+               for k, g in enumerate(record.garments or [])}
+
+    def layers(f: int) -> list[MeshLayer]:
+        out = [MeshLayer(body.vertices[start + f], body.rest.faces, BODY_COLOUR)]
+        for g in record.garments or []:
+            out.append(MeshLayer(record.sim.vertices[g.name][f], g.faces, colours[g.name], True))
+        return out
+
+    path = Path(path)
+    if path.suffix.lower() == ".gif":
+        frames = list(range(0, n, every))
+        images = render_sequence([layers(f) for f in frames], height=height)
+        save_gif(path, images, fps=body.fps / every)
+    else:
+        picks = np.linspace(0, n - 1, 4).round().astype(int)
+        images = render_sequence([layers(f) for f in picks], height=height)
+        top = np.concatenate(images[:2], axis=1)
+        bottom = np.concatenate(images[2:], axis=1)
+        save_png(path, np.concatenate([top, bottom], axis=0))

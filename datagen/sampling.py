@@ -117,9 +117,9 @@ def sample_outfit(
 ) -> OutfitSpec:
     if not loaded.recipe.outfit:  # a body-only dataset
         return OutfitSpec()
-    from datagen.garment import outfit_sampling
+    from datagen.garment.outfit import sample_outfit as sample
 
-    return outfit_sampling.sample_outfit(loaded, rng, subject)
+    return sample(loaded, rng, subject)
 
 
 def sample_scene(loaded: LoadedRecipe, index: int) -> SceneSpec:

@@ -191,14 +191,14 @@ class AnnyBody:
     def shape_range(self) -> dict[str, tuple[float, float]]:
         return dict(SHAPE_RANGE)
 
-    def _check_shape(self, shape: np.ndarray) -> np.ndarray:
+    def _check_shape(self, shape: np.ndarray, extrapolate: bool = False) -> np.ndarray:
         shape = np.asarray(shape, dtype=np.float64)
         if shape.shape != (len(SHAPE_NAMES),):
             raise InputError(
                 None, "shape", f"{len(SHAPE_NAMES)} Anny phenotypes {SHAPE_NAMES}", shape.shape
             )
         for name, value in zip(SHAPE_NAMES, shape, strict=True):
-            lo, hi = 0.0, 1.0
+            lo, hi = (-0.5, 1.5) if extrapolate else (0.0, 1.0)
             if not (lo <= value <= hi) or not np.isfinite(value):
                 raise InputError(None, f"shape.{name}", f"a value in [{lo}, {hi}]", float(value))
         return shape
@@ -219,8 +219,16 @@ class AnnyBody:
         model = _anny_model()
         kwargs = {"gender": GENDER_VALUE[gender]}
         kwargs.update({name: float(v) for name, v in zip(SHAPE_NAMES, shape, strict=True)})
-        with torch.no_grad():
-            out = model(phenotype_kwargs=kwargs)
+        # Phenotypes beyond [0, 1] (garment bodies of loose fits) extrapolate the blendshapes
+        # linearly; inside the range this changes nothing.
+        outside = bool(np.any((shape < 0.0) | (shape > 1.0)))
+        previous = model.extrapolate_phenotypes
+        model.extrapolate_phenotypes = outside
+        try:
+            with torch.no_grad():
+                out = model(phenotype_kwargs=kwargs)
+        finally:
+            model.extrapolate_phenotypes = previous
         rest = out["rest_vertices"][0].double().cpu().numpy()
         heads = out["rest_bone_heads"][0].double().cpu().numpy()
         n_bones = len(self.bone_labels)
@@ -253,9 +261,11 @@ class AnnyBody:
         return out
 
     # -- rest and posing -----------------------------------------------------------------------
-    def rest_body(self, gender: str, shape: np.ndarray) -> RestBody:
+    def rest_body(self, gender: str, shape: np.ndarray, extrapolate: bool = False) -> RestBody:
+        """The subject in the T-pose. `extrapolate` admits phenotypes in [-0.5, 1.5] (bodies a
+        loose garment is made for), beyond Anny's calibrated range."""
         check_gender(gender)
-        shape = self._check_shape(shape)
+        shape = self._check_shape(shape, extrapolate)
         subject = self._subject(gender, shape)
         t_pose = self._skin(subject, subject.corrections[None], subject.t_heads[None])[0]
         offset = subject.offset

@@ -271,3 +271,92 @@ def describe(path: str | Path) -> dict:
         tree["file"] = str(path)
         tree["sequences"] = reader.sequence_ids()
     return tree
+
+
+# -- garments, simulation report, QA, rejections ----------------------------------------------
+QUANT_STEP = 1e-4  # m: quantised positions are multiples of this relative to the pelvis
+
+
+def write_positions(group: h5py.Group, name: str, positions: np.ndarray,
+                    reference: np.ndarray | None, quantize: bool) -> None:
+    """Per-frame positions (F, V, 3): float32 (lossless), or int16 multiples of QUANT_STEP
+    relative to a per-frame reference point (the pelvis), max error QUANT_STEP / 2."""
+    positions = np.asarray(positions, dtype=np.float32)
+    if not quantize:
+        write_array(group, name, positions, per_frame=True)
+        return
+    ref = np.zeros((len(positions), 3)) if reference is None else np.asarray(reference)
+    rel = (positions.astype(np.float64) - ref[:, None, :]) / QUANT_STEP
+    if np.abs(rel).max() > 32767:
+        raise ValueError(f"{name}: a vertex is over 3.2 m from the reference point")
+    q = np.round(rel).astype(np.int16)
+    write_array(group, name, q, per_frame=True, quantized_step=QUANT_STEP,
+                reference="body/trans")
+
+
+def read_positions(group: h5py.Group, name: str, frames=slice(None)) -> np.ndarray:
+    ds = group[name]
+    data = ds[frames]
+    step = ds.attrs.get("quantized_step")
+    if step is None:
+        return data
+    sequence = group.parent.parent  # /sequences/<id>/garments/<name>
+    trans = sequence["body"]["trans"][frames]
+    return (data.astype(np.float64) * float(step) + trans[..., None, :]).astype(np.float32)
+
+
+def write_garments(group: h5py.Group, garments, sim, lead_in: int, trans: np.ndarray,
+                   quantize: bool) -> None:
+    g_root = group.create_group("garments")
+    for garment in garments:
+        g = g_root.create_group(garment.name)
+        g.attrs["type"] = garment.meta.get("variant", garment.category) if garment.meta \
+            else garment.category
+        g.attrs["category"] = garment.category
+        g.attrs["fabric"] = garment.fabric
+        g.attrs["tightness"] = np.asarray(garment.tightness, dtype=np.float64)
+        g.attrs["elastic"] = list(garment.elastic)
+        g.attrs["layer"] = garment.layer
+        g.attrs["meta"] = json.dumps(garment.meta, sort_keys=True)
+        write_array(g, "faces", np.asarray(garment.faces, dtype=np.int32))
+        write_array(g, "rest_vertices", np.asarray(garment.rest, dtype=np.float32))
+        write_array(g, "start_vertices", np.asarray(garment.vertices, dtype=np.float32))
+        if garment.uv is not None:
+            write_array(g, "uv", np.asarray(garment.uv, dtype=np.float32))
+        if garment.regions is not None:
+            write_array(g, "regions", np.asarray(garment.regions, dtype=np.int16))
+            g.attrs["region_names"] = list(garment.region_names)
+        loops = g.create_group("loops")
+        for role, ids in garment.loops.items():
+            write_array(loops, role, np.asarray(ids, dtype=np.int32))
+        if sim is not None:
+            write_positions(g, "vertices", sim.vertices[garment.name], trans, quantize)
+    if sim is not None:
+        s = group.create_group("sim")
+        s.attrs["report"] = json.dumps(sim.report, sort_keys=True, default=float)
+        for key in ("solver", "quality", "substeps", "iterations", "retries", "wall_time_s"):
+            s.attrs[key] = sim.report[key]
+        s.attrs["effects"] = list(sim.report["effects"])
+        qa = group.create_group("qa")
+        for name, series in sim.qa.items():
+            write_array(qa, name, np.asarray(series, dtype=np.float32))
+
+
+def write_record(writer: ShardWriter, record, store_body_vertices: bool = False,
+                 quantize: bool = False) -> None:
+    """A finished sequence (its group) or a rejection (under /rejected, with the reason)."""
+    if record.status != "ok":
+        rej = writer._file.require_group("rejected").create_group(record.spec.sequence_id)
+        rej.attrs["spec"] = record.spec.to_json()
+        rej.attrs["stage"] = record.stage or ""
+        rej.attrs["reason"] = record.reason or ""
+        rej.attrs["frames"] = np.asarray(record.frames if record.frames else (-1, -1))
+        rej.attrs["timings"] = json.dumps(record.timings, sort_keys=True)
+        return
+    group = writer.sequence_group(record.spec)
+    group.attrs["timings"] = json.dumps(record.timings, sort_keys=True)
+    write_body(group, record.body, store_body_vertices)
+    if record.garments:
+        trans = record.body.trans[record.body.lead_in_frames:]
+        write_garments(group, record.garments, record.sim, record.body.lead_in_frames, trans,
+                       quantize)

@@ -104,8 +104,10 @@ class BodyCollider:
             self.starts = ti.ndarray(ti.i32, self._n_cells_alloc + 1)
             self.counts.fill(0)
         self.origin = VEC3(*lo.astype(NP_REAL))
+        self.origin_np = lo.astype(np.float64)
         self.inv_cell = float(1.0 / self.cell)
         self.dims = ti.math.ivec3(*dims.astype(np.int32))
+        self.dims_np = dims.astype(np.int32)
         K.grid_count(
             self.b0,
             self.b1,

@@ -191,6 +191,7 @@ class ImplicitSolver(ClothSolver):
         self.costs["implicit_solve"] += time.perf_counter() - t
         self._pins(s1)
         self._collide(collider, s0, s1, h)
+        self._cloth_collisions(h)
         self._run(
             "integration",
             K.finish,

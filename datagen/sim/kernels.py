@@ -481,8 +481,6 @@ def collide_one(
     The vertex tracks its closest body triangle: a walk across edges towards the projection of
     the vertex keeps it current as the body moves; the grid search resets it.
     """
-    contact_n[i] = vec3(0.0)
-    contact_v[i] = vec3(0.0)
     t = tri[i]
     if w[i] > 0.0 and t >= 0:
         p = x[i]
@@ -550,6 +548,13 @@ def collide_one(
                 x[i] = p
                 contact_n[i] = nrm
                 contact_v[i] = dq / h
+
+
+@ti.kernel
+def clear_contacts(contact_n: V3, contact_v: V3):
+    for i in contact_n:
+        contact_n[i] = vec3(0.0)
+        contact_v[i] = vec3(0.0)
 
 
 @ti.kernel
@@ -785,6 +790,17 @@ def grid_nearest(
 
 
 # -- one launch per frame (CPU) ----------------------------------------------------------------
+# Scalars of the fused frame kernel, packed into two small arrays: a kernel takes at most 64
+# argument elements on the x64 backend, and the fused kernel needs every array of the solver.
+P_H, P_OMEGA, P_RECOVER, P_APPROACH, P_CELL, P_INV_CELL = range(6)
+P_GRAVITY, P_WIND, P_ORIGIN, P_L_ORIGIN = 6, 9, 12, 15  # 3 values each
+P_S_INV_CELL, P_S_RADIUS, P_S_MIN_REST, P_L_INV_CELL, P_L_CELL = range(18, 23)
+P_SIZE = 23
+Q_N_SUB, Q_N_ITER, Q_SWEEP0, Q_N_SETS, Q_N_BENDS, Q_N_PINS, Q_S_MASK = range(7)
+Q_DIMS, Q_L_DIMS = 7, 10  # 3 values each
+Q_SIZE = 13
+
+
 @ti.kernel
 def xpbd_frame(
     x: V3,
@@ -799,17 +815,14 @@ def xpbd_frame(
     beta: F1,
     lam: F1,
     set_ranges: I2,
-    n_sets: ti.i32,
     bends: I4,
     kw: V4,
     bcomp: F1,
     bbeta: F1,
     lam_b: V3,
-    n_bends: ti.i32,
     pin_idx: I1,
     pin_t0: V3,
     pin_t1: V3,
-    n_pins: ti.i32,
     tri: I1,
     faces: I3,
     fadj: I3,
@@ -821,30 +834,59 @@ def xpbd_frame(
     friction: F1,
     contact_n: V3,
     contact_v: V3,
-    origin: vec3,
-    inv_cell: REAL,
-    dims: ti.math.ivec3,
     starts: I1,
     items: I1,
-    cell: REAL,
-    gravity: vec3,
-    wind: vec3,
-    h: REAL,
-    n_sub: ti.i32,
-    n_iter: ti.i32,
-    sweep0: ti.i32,
-    omega: REAL,
-    recover: REAL,
     skip: I1,
-    approach: REAL,
+    s_owner: I1,
+    s_rest: V3,
+    s_counts: I1,
+    s_starts: I1,
+    s_items: I1,
+    l_w: F1,
+    l_tri: I1,
+    l_skip: I1,
+    l_faces: I3,
+    l_fadj: I3,
+    l_b: V3,
+    l_n: V3,
+    l_starts: I1,
+    l_items: I1,
+    P: F1,
+    Q: I1,
     use_gravity: ti.template(),
     use_air: ti.template(),
     use_collision: ti.template(),
     use_friction: ti.template(),
+    use_layers: ti.template(),
+    use_self: ti.template(),
 ):
     """All substeps of one frame of the XPBD solver in one serial launch: the same per-element
     functions, in the same order, as the per-effect kernels (which profiling runs use), without
     a Python round trip per kernel."""
+    h = P[P_H]
+    omega = P[P_OMEGA]
+    recover = P[P_RECOVER]
+    approach = P[P_APPROACH]
+    cell = P[P_CELL]
+    inv_cell = P[P_INV_CELL]
+    gravity = vec3(P[P_GRAVITY], P[P_GRAVITY + 1], P[P_GRAVITY + 2])
+    wind = vec3(P[P_WIND], P[P_WIND + 1], P[P_WIND + 2])
+    origin = vec3(P[P_ORIGIN], P[P_ORIGIN + 1], P[P_ORIGIN + 2])
+    l_origin = vec3(P[P_L_ORIGIN], P[P_L_ORIGIN + 1], P[P_L_ORIGIN + 2])
+    s_inv_cell = P[P_S_INV_CELL]
+    s_radius = P[P_S_RADIUS]
+    s_min_rest = P[P_S_MIN_REST]
+    l_inv_cell = P[P_L_INV_CELL]
+    l_cell = P[P_L_CELL]
+    n_sub = Q[Q_N_SUB]
+    n_iter = Q[Q_N_ITER]
+    sweep0 = Q[Q_SWEEP0]
+    n_sets = Q[Q_N_SETS]
+    n_bends = Q[Q_N_BENDS]
+    n_pins = Q[Q_N_PINS]
+    s_mask = Q[Q_S_MASK]
+    dims = ti.math.ivec3(Q[Q_DIMS], Q[Q_DIMS + 1], Q[Q_DIMS + 2])
+    l_dims = ti.math.ivec3(Q[Q_L_DIMS], Q[Q_L_DIMS + 1], Q[Q_L_DIMS + 2])
     n = x.shape[0]
     ti.loop_config(serialize=True)
     for k in range(n_sub):
@@ -875,6 +917,9 @@ def xpbd_frame(
             x[pin_idx[p]] = lerp3(pin_t0[p], pin_t1[p], s1)
         if ti.static(use_collision):
             for i in range(n):
+                contact_n[i] = vec3(0.0)
+                contact_v[i] = vec3(0.0)
+            for i in range(n):
                 nearest_one(
                     i, x, w, b0, b1, faces, origin, inv_cell, dims, starts, items, s1, cell, tri, 1,
                     skip, approach,
@@ -903,6 +948,25 @@ def xpbd_frame(
                     h,
                     use_friction,
                 )
+        if ti.static(use_layers):
+            # Outer garments against the inner one's surface (as it was at the frame's start).
+            for i in range(n):
+                nearest_one(
+                    i, x, l_w, l_b, l_b, l_faces, l_origin, l_inv_cell, l_dims, l_starts, l_items,
+                    1.0, l_cell, l_tri, 1, l_skip, 10.0 * h,
+                )
+            for i in range(n):
+                collide_one(
+                    i, x, xp, l_w, l_tri, l_faces, l_fadj, l_b, l_b, l_n, l_n, 0.0, 1.0, thickness,
+                    friction, recover, 2.0 * l_cell, contact_n, contact_v, h, use_friction,
+                )
+        if ti.static(use_self):
+            self_hash_build(x, s_counts, s_starts, s_items, s_inv_cell, s_mask)
+            for i in range(n):
+                self_collide_one(
+                    i, x, w, s_owner, s_rest, s_starts, s_items, s_inv_cell, s_mask, s_radius,
+                    s_min_rest,
+                )
         for i in range(n):
             finish_one(i, x, xp, v, w, contact_n, contact_v, h)
 
@@ -923,3 +987,59 @@ def signed_distance_to_tracked(x: V3, tri: I1, faces: I3, b: V3, n: V3, far: REA
             if nl > 1e-12:
                 d = (x[i] - q).dot(nrm / nl)
         out[i] = d
+
+
+# -- cloth self-collision ----------------------------------------------------------------------
+@ti.func
+def hash_cell(c: ti.math.ivec3, mask: ti.i32) -> ti.i32:
+    return ((c[0] * 73856093) ^ (c[1] * 19349663) ^ (c[2] * 83492791)) & mask
+
+
+@ti.func
+def self_hash_build(x: V3, counts: I1, starts: I1, items: I1, inv_cell: REAL, mask: ti.i32):
+    """Counting sort of the cloth vertices into a hashed grid (serial loops: called from serial
+    kernels, or as separate tasks by `self_collide`)."""
+    for c in range(mask + 1):
+        counts[c] = 0
+    for i in range(x.shape[0]):
+        c = hash_cell(ti.cast(ti.floor(x[i] * inv_cell), ti.i32), mask)
+        counts[c] += 1
+    starts[0] = 0
+    for c in range(mask + 1):
+        starts[c + 1] = starts[c] + counts[c]
+        counts[c] = 0
+    for i in range(x.shape[0]):
+        c = hash_cell(ti.cast(ti.floor(x[i] * inv_cell), ti.i32), mask)
+        items[starts[c] + counts[c]] = i
+        counts[c] += 1
+
+
+@ti.func
+def self_collide_one(i: ti.i32, x: V3, w: F1, owner: I1, rest: V3, starts: I1, items: I1,
+                     inv_cell: REAL, mask: ti.i32, radius: REAL, min_rest: REAL):
+    """Push vertex i and nearby vertices of the same garment apart to `radius`, unless they are
+    near each other in the rest shape too (neighbours in the fabric, not a fold)."""
+    base = ti.cast(ti.floor(x[i] * inv_cell), ti.i32)
+    for nb in range(27):
+        c = hash_cell(base + ti.math.ivec3(nb // 9 - 1, (nb // 3) % 3 - 1, nb % 3 - 1), mask)
+        for q in range(starts[c], starts[c + 1]):
+            j = items[q]
+            if j > i and owner[j] == owner[i]:
+                d = x[j] - x[i]
+                dist = d.norm()
+                wsum = w[i] + w[j]
+                if dist < radius and dist > 1e-9 and wsum > 0.0:
+                    if (rest[j] - rest[i]).norm() > min_rest:
+                        corr = (radius - dist) / (dist * wsum) * d
+                        x[i] -= w[i] * corr
+                        x[j] += w[j] * corr
+
+
+@ti.kernel
+def self_collide(x: V3, w: F1, owner: I1, rest: V3, counts: I1, starts: I1, items: I1,
+                 inv_cell: REAL, mask: ti.i32, radius: REAL, min_rest: REAL):
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        self_hash_build(x, counts, starts, items, inv_cell, mask)
+        for i in range(x.shape[0]):
+            self_collide_one(i, x, w, owner, rest, starts, items, inv_cell, mask, radius, min_rest)

@@ -34,6 +34,7 @@ class ClothModel:
     """Concatenated arrays of every garment of a scene."""
 
     x0: np.ndarray  # (V, 3) float64 initial positions
+    rest_x: np.ndarray  # (V, 3) float64 rest shape (what "near in the fabric" is measured on)
     faces: np.ndarray  # (T, 3) int32
     mass: np.ndarray  # (V,) kg
     garment_of_vertex: np.ndarray  # (V,) int32
@@ -57,6 +58,7 @@ class ClothModel:
     max_strain: np.ndarray  # (E,)
     pinned: np.ndarray  # (P,) vertex ids attached to the body
     fabrics: list[Fabric]
+    layers: list[int] = None  # layer of each garment (0 = innermost)
 
     @property
     def n_vertices(self) -> int:
@@ -150,7 +152,7 @@ def _loop_edges(loop: np.ndarray, edge_index: dict[tuple[int, int], int]) -> lis
 
 
 def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
-    xs, faces, masses, gids, names, granges, franges = [], [], [], [], [], [], []
+    xs, rests, faces, masses, gids, names, granges, franges = [], [], [], [], [], [], [], []
     springs, rest_len, kt, kc, beta, kind, elastic, maxs = [], [], [], [], [], [], [], []
     bends, bweights, bstiff, bbeta = [], [], [], []
     drag, fric, thick, pinned, fabrics = [], [], [], [], []
@@ -195,6 +197,7 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
             is_elastic = np.concatenate([is_elastic, np.zeros(len(seam), dtype=bool)])
 
         xs.append(x)
+        rests.append(rest)
         faces.append(f + offset)
         masses.append(fabric.density * vertex_area)
         gids.append(np.full(n, gi, dtype=np.int32))
@@ -227,6 +230,7 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
         raise ValueError("a garment vertex has no area (unreferenced or degenerate faces)")
     return ClothModel(
         x0=np.concatenate(xs),
+        rest_x=np.concatenate(rests),
         faces=np.concatenate(faces).astype(np.int32),
         mass=mass,
         garment_of_vertex=np.concatenate(gids),
@@ -250,4 +254,5 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
         max_strain=np.concatenate(maxs),
         pinned=np.concatenate(pinned) if pinned else np.zeros(0, dtype=np.int64),
         fabrics=fabrics,
+        layers=[g.layer for g, _ in garments],
     )

@@ -124,6 +124,78 @@ class ClothSolver:
         self.costs: dict[str, float] = defaultdict(float)
         self.launches: dict[str, int] = defaultdict(int)
         self._sweep = 0
+        self._init_self_collision()
+        self._init_layers()
+
+    # -- cloth-cloth collision ---------------------------------------------------------------
+    def _init_self_collision(self) -> None:
+        """Vertex-vertex repulsion within each garment: vertices closer than `radius` that are
+        not near each other in the rest shape (a fold, not fabric neighbours) are pushed apart."""
+        self.use_self = bool(self.effects.self_collision)
+        model = self.model
+        edge = float(np.median(model.rest_length[model.spring_kind == STRUCTURAL])) if len(
+            model.rest_length) else 0.01
+        self.self_radius = max(float(model.thickness.max()), 0.4 * edge)
+        self.self_min_rest = 2.0 * edge + self.self_radius
+        size = 1 << int(np.ceil(np.log2(max(2 * self.n, 16))))
+        self.s_mask = size - 1
+        self.s_counts = _nd(ti.i32, np.zeros(size if self.use_self else 1, np.int32))
+        self.s_starts = _nd(ti.i32, np.zeros(size + 1 if self.use_self else 2, np.int32))
+        self.s_items = _nd(ti.i32, np.zeros(self.n if self.use_self else 1, np.int32))
+        self.s_owner = _nd(ti.i32, model.garment_of_vertex.astype(np.int32))
+        self.s_rest = _nd(VEC3, model.rest_x.astype(NP_REAL))
+
+    def _init_layers(self) -> None:
+        """Outer garments collide with the innermost one's surface (layered outfits)."""
+        from datagen.sim.collider import BodyCollider
+
+        model = self.model
+        layers = model.layers or [0] * len(model.garment_names)
+        inner_layer = min(layers)
+        inner = [g for g, layer in enumerate(layers) if layer == inner_layer]
+        outer = [g for g, layer in enumerate(layers) if layer > inner_layer]
+        self.use_layers = bool(self.effects.garment_collision and outer)
+        layer_w = np.zeros(self.n, NP_REAL)
+        if self.use_layers:
+            self.inner_vertices = np.concatenate(
+                [np.arange(*model.garment_ranges[g]) for g in inner])
+            remap = -np.ones(self.n, np.int64)
+            remap[self.inner_vertices] = np.arange(len(self.inner_vertices))
+            faces = np.concatenate([model.faces[slice(*model.face_ranges[g])] for g in inner])
+            self.layer_collider = BodyCollider(remap[faces].astype(np.int32),
+                                               np.ones(len(faces), bool),
+                                               len(self.inner_vertices))
+            for g in outer:
+                lo, hi = model.garment_ranges[g]
+                layer_w[lo:hi] = 1.0
+            layer_w[model.pinned if self.effects.pins else []] = 0.0
+        self.layer_w = _nd(REAL, layer_w)
+        self.layer_tri = _nd(ti.i32, -np.ones(self.n, np.int32))
+        self.layer_skip = _nd(ti.i32, np.zeros(self.n, np.int32))
+
+    def begin_frame(self) -> None:
+        """Per-frame set-up: the inner garment's surface for the layer collisions."""
+        if self.use_layers:
+            x, _ = self.get_state()
+            inner = x[self.inner_vertices]
+            self.layer_collider.set_frames(inner, inner)
+            self._run("garment_collision", self.layer_collider.nearest, self.x, self.layer_w,
+                      self.layer_tri, 1.0, False, self.layer_skip, 0.0)
+
+    def _cloth_collisions(self, h: float) -> None:
+        if self.use_layers:
+            c = self.layer_collider
+            self._run("garment_collision", c.nearest, self.x, self.layer_w, self.layer_tri, 1.0,
+                      True, self.layer_skip, 10.0 * h)
+            self._run("garment_collision", K.collide_body, self.x, self.xp, self.layer_w,
+                      self.layer_tri, c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, 0.0, 1.0,
+                      self.thickness, self.friction, self.settings.recover_speed * h,
+                      2.0 * c.cell, self.contact_n, self.contact_v, h, self.effects.friction)
+        if self.use_self:
+            inv = 1.0 / self.self_radius
+            self._run("self_collision", K.self_collide, self.x, self.w, self.s_owner,
+                      self.s_rest, self.s_counts, self.s_starts, self.s_items, inv, self.s_mask,
+                      self.self_radius, self.self_min_rest)
 
     # -- state -------------------------------------------------------------------------------
     def get_state(self) -> tuple[np.ndarray, np.ndarray]:
@@ -151,6 +223,7 @@ class ClothSolver:
             self._run("pins", K.apply_pins, self.x, self.pin_idx, self.pin_t0, self.pin_t1, s1)
 
     def _collide(self, collider, s0: float, s1: float, h: float) -> None:
+        self._run("body_collision", K.clear_contacts, self.contact_n, self.contact_v)
         if collider is None or not self.effects.body_collision:
             return
         recover = self.settings.recover_speed * h
@@ -201,6 +274,7 @@ class ClothSolver:
     def advance_frame(self, collider, n_sub: int, h: float, profile: bool = False) -> None:
         """All substeps of one frame. `profile` runs the per-effect kernels so that each
         effect's cost is measured (solvers with a fused frame kernel skip them otherwise)."""
+        self.begin_frame()
         for k in range(n_sub):
             self.substep(h, collider, k / n_sub, (k + 1) / n_sub)
 
@@ -269,72 +343,65 @@ class XPBDSolver(ClothSolver):
             self.pin_idx = _nd(ti.i32, np.zeros(1, np.int32))
             self.pin_t0 = self.pin_t1 = ti.ndarray(VEC3, 1)
         self._dummy_collider = None
+        self.P = ti.ndarray(REAL, K.P_SIZE)
+        self.Q = ti.ndarray(ti.i32, K.Q_SIZE)
+        self.wind_np = np.asarray(self.settings.wind if self.effects.wind else (0.0, 0.0, 0.0))
 
     def advance_frame(self, collider, n_sub: int, h: float, profile: bool = False) -> None:
         if profile or not self.gauss_seidel:
             return super().advance_frame(collider, n_sub, h, profile)
+        self.begin_frame()
         import time
 
         e = self.effects
         use_collision = collider is not None and e.body_collision
         c = collider if use_collision else self._placeholder_collider()
+        lc = self.layer_collider if self.use_layers else self._placeholder_collider()
         t = time.perf_counter()
+        P = np.zeros(K.P_SIZE, NP_REAL)
+        P[K.P_H] = h
+        P[K.P_OMEGA] = self.settings.sor
+        P[K.P_RECOVER] = self.settings.recover_speed * h
+        P[K.P_APPROACH] = self._approach(c, h) if use_collision else 0.0
+        P[K.P_CELL] = c.cell
+        P[K.P_INV_CELL] = c.inv_cell
+        P[K.P_GRAVITY : K.P_GRAVITY + 3] = self.settings.gravity
+        P[K.P_WIND : K.P_WIND + 3] = self.wind_np
+        P[K.P_ORIGIN : K.P_ORIGIN + 3] = c.origin_np
+        P[K.P_L_ORIGIN : K.P_L_ORIGIN + 3] = lc.origin_np
+        P[K.P_S_INV_CELL] = 1.0 / self.self_radius
+        P[K.P_S_RADIUS] = self.self_radius
+        P[K.P_S_MIN_REST] = self.self_min_rest
+        P[K.P_L_INV_CELL] = lc.inv_cell
+        P[K.P_L_CELL] = lc.cell
+        Q = np.zeros(K.Q_SIZE, np.int32)
+        Q[K.Q_N_SUB] = n_sub
+        Q[K.Q_N_ITER] = self.settings.iterations
+        Q[K.Q_SWEEP0] = self._sweep
+        Q[K.Q_N_SETS] = self.f_nsets
+        Q[K.Q_N_BENDS] = self.n_bends
+        Q[K.Q_N_PINS] = self.n_pins
+        Q[K.Q_S_MASK] = self.s_mask
+        Q[K.Q_DIMS : K.Q_DIMS + 3] = c.dims_np
+        Q[K.Q_L_DIMS : K.Q_L_DIMS + 3] = lc.dims_np
+        self.P.from_numpy(P)
+        self.Q.from_numpy(Q)
         K.xpbd_frame(
-            self.x,
-            self.xp,
-            self.v,
-            self.w,
-            self.drag,
-            self.f_springs,
-            self.f_rest,
-            self.f_comp_t,
-            self.f_comp_c,
-            self.f_beta,
-            self.f_lam,
+            self.x, self.xp, self.v, self.w, self.drag,
+            self.f_springs, self.f_rest, self.f_comp_t, self.f_comp_c, self.f_beta, self.f_lam,
             self.f_ranges,
-            self.f_nsets,
-            self.bends,
-            self.kw,
-            self.bcomp,
-            self.bbeta,
-            self.lam_b,
-            self.n_bends,
-            self.pin_idx,
-            self.pin_t0,
-            self.pin_t1,
-            self.n_pins,
-            self.tri,
-            c.faces,
-            c.fadj,
-            c.b0,
-            c.b1,
-            c.n0,
-            c.n1,
-            self.thickness,
-            self.friction,
-            self.contact_n,
-            self.contact_v,
-            c.origin,
-            c.inv_cell,
-            c.dims,
-            c.starts,
-            c.items,
-            float(c.cell),
-            self.gravity,
-            self.wind,
-            h,
-            n_sub,
-            self.settings.iterations,
-            self._sweep,
-            self.settings.sor,
-            self.settings.recover_speed * h,
-            self.skip,
-            self._approach(c, h) if use_collision else 0.0,
-            e.gravity,
-            e.air_drag or e.wind,
-            use_collision,
-            e.friction,
-        )
+            self.bends, self.kw, self.bcomp, self.bbeta, self.lam_b,
+            self.pin_idx, self.pin_t0, self.pin_t1,
+            self.tri, c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1,
+            self.thickness, self.friction, self.contact_n, self.contact_v,
+            c.starts, c.items, self.skip,
+            self.s_owner, self.s_rest, self.s_counts, self.s_starts, self.s_items,
+            self.layer_w, self.layer_tri, self.layer_skip, lc.faces, lc.fadj, lc.b0, lc.n0,
+            lc.starts, lc.items,
+            self.P, self.Q,
+            e.gravity, e.air_drag or e.wind, use_collision, e.friction, self.use_layers,
+            self.use_self,
+        )  # fmt: skip
         self._sweep += n_sub * self.settings.iterations
         self.costs["fused_frame"] += time.perf_counter() - t
         self.launches["fused_frame"] += 1
@@ -355,6 +422,8 @@ class XPBDSolver(ClothSolver):
                 n0=v3,
                 n1=v3,
                 origin=VEC3(0.0),
+                origin_np=np.zeros(3),
+                dims_np=np.ones(3, np.int32),
                 inv_cell=1.0,
                 dims=ti.math.ivec3(1, 1, 1),
                 starts=i1,
@@ -453,6 +522,7 @@ class XPBDSolver(ClothSolver):
                 self._jacobi_iteration(h)
         self._pins(s1)
         self._collide(collider, s0, s1, h)
+        self._cloth_collisions(h)
         self._run(
             "integration",
             K.finish,
@@ -583,6 +653,7 @@ class ExplicitSolver(ClothSolver):
         )
         self._pins(s1)
         self._collide(collider, s0, s1, h)
+        self._cloth_collisions(h)
         self._run(
             "integration",
             K.finish_contacts,

@@ -1,0 +1,128 @@
+"""Resizing a template garment to a subject (CLOTH3D thesis 3.3.2).
+
+A template is built around the neutral rest body of its gender. Its fit to another subject comes
+from the body's own shape change: every body vertex's displacement from the template body to a
+target body (same topology, so vertex by vertex) is carried to the garment from the nearest body
+points, then smoothed over the garment by iterative Laplacian smoothing so that body details
+(muscles, breasts) do not print through while the garment's own shape stays.
+
+Two targets give the garment its two geometries (datagen.types.Garment):
+
+- `rest_vertices`, the garment's rest shape (its size): the subject's shape with the tightness
+  offsets gamma = (size, girth) in [-1.5, 0.5]^2 applied to the size and girth phenotypes
+  (height and weight for Anny), in units of a sixth of their range (CLOTH3D's betas span
+  [-3, 3], six units); negative gamma makes the garment for a bigger body: looser.
+- `vertices`, the starting positions: the same transfer to the subject's own body, pushed out
+  where needed so no vertex starts closer than CLEARANCE to the body. A tight garment thus starts
+  stretched around the body and contracts onto it in the simulation; a loose one starts
+  gathered and falls open.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from datagen.types import RestBody
+
+CLEARANCE = 0.004  # m: starting gap to the subject's skin (the check requires 2 mm)
+TIGHTNESS_SCALE = 1.0 / 6.0  # phenotype units per tightness unit (beta range 6 -> [0, 1])
+SIZE_PARAMETER = "height"
+GIRTH_PARAMETER = "weight"
+SMOOTHING_ITERATIONS = 20
+SMOOTHING_WEIGHT = 0.5
+NEIGHBOURS = 8  # body vertices averaged per garment vertex
+
+
+def garment_body_shape(shape: np.ndarray, names: tuple[str, ...],
+                       tightness: tuple[float, float]) -> np.ndarray:
+    """The shape the garment is made for: tightness offsets on the size and girth parameters."""
+    out = np.array(shape, dtype=np.float64, copy=True)
+    out[names.index(SIZE_PARAMETER)] -= TIGHTNESS_SCALE * tightness[0]
+    out[names.index(GIRTH_PARAMETER)] -= TIGHTNESS_SCALE * tightness[1]
+    return out
+
+
+def vertex_neighbours(n_vertices: int, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """CSR (pointer, index) of each vertex's mesh neighbours."""
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e = np.unique(np.sort(np.concatenate([e, e[:, ::-1]]), axis=1), axis=0)
+    both = np.concatenate([e, e[:, ::-1]])
+    order = np.argsort(both[:, 0], kind="stable")
+    both = both[order]
+    ptr = np.zeros(n_vertices + 1, dtype=np.int64)
+    np.add.at(ptr, both[:, 0] + 1, 1)
+    return np.cumsum(ptr), both[:, 1]
+
+
+def laplacian_smooth(values: np.ndarray, faces: np.ndarray, iterations: int,
+                     weight: float) -> np.ndarray:
+    """Iterative umbrella smoothing of a per-vertex field (V, k) over the mesh."""
+    ptr, idx = vertex_neighbours(len(values), faces)
+    counts = np.diff(ptr)
+    owner = np.repeat(np.arange(len(values)), counts)
+    out = np.array(values, dtype=np.float64, copy=True)
+    for _ in range(iterations):
+        mean = np.zeros_like(out)
+        np.add.at(mean, owner, out[idx])
+        mean /= np.maximum(counts, 1)[:, None]
+        out = out + weight * (mean - out)
+    return out
+
+
+def transfer_displacement(garment: np.ndarray, faces: np.ndarray, source_body: np.ndarray,
+                          target_body: np.ndarray) -> np.ndarray:
+    """Per garment vertex, the smoothed displacement of its nearest body points."""
+    tree = cKDTree(source_body)
+    dist, idx = tree.query(garment, k=NEIGHBOURS)
+    w = 1.0 / np.maximum(dist, 1e-4) ** 2
+    w /= w.sum(axis=1, keepdims=True)
+    disp = np.einsum("vk,vkd->vd", w, target_body[idx] - source_body[idx])
+    return laplacian_smooth(disp, faces, SMOOTHING_ITERATIONS, SMOOTHING_WEIGHT)
+
+
+def body_signed_distance(points: np.ndarray, body: RestBody) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distance to the (watertight) rest body and the surface normal at the closest
+    point."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(body.vertices, body.faces, process=False)
+    closest, dist, tri = trimesh.proximity.closest_point(mesh, points)
+    normals = mesh.face_normals[tri]
+    sign = np.sign(np.einsum("ij,ij->i", points - closest, normals))
+    inside = mesh.contains(points[sign <= 0]) if np.any(sign <= 0) else np.zeros(0, bool)
+    sign[sign <= 0] = np.where(inside, -1.0, 1.0)
+    return sign * dist, normals
+
+
+def push_out(vertices: np.ndarray, faces: np.ndarray, body: RestBody,
+             clearance: float = CLEARANCE, rounds: int = 6) -> np.ndarray:
+    """Move vertices closer than `clearance` to the body (or inside it) outward along the body
+    normal, spreading the move smoothly so the surface keeps its shape."""
+    out = np.array(vertices, dtype=np.float64, copy=True)
+    for _ in range(rounds):
+        sd, normals = body_signed_distance(out, body)
+        short = clearance + 0.001 - sd
+        if np.all(short <= 0.001):
+            break
+        push = np.where(short > 0, short, 0.0)[:, None] * normals
+        spread = laplacian_smooth(push, faces, 3, 0.5)
+        # Never less than the local need: smoothing spreads, it must not undo.
+        need = np.where(short > 0, short, 0.0)
+        along = np.einsum("ij,ij->i", spread, normals)
+        spread += np.maximum(need - along, 0.0)[:, None] * normals
+        out += spread
+    return out
+
+
+def resize(template_vertices: np.ndarray, faces: np.ndarray, template_body: RestBody,
+           subject: RestBody, garment_body: RestBody) -> tuple[np.ndarray, np.ndarray]:
+    """(starting positions, rest shape) of a template garment resized to `subject`, made for
+    `garment_body` (the subject with the tightness offsets)."""
+    src = template_body.vertices
+    start = template_vertices + transfer_displacement(template_vertices, faces, src,
+                                                      subject.vertices)
+    rest = template_vertices + transfer_displacement(template_vertices, faces, src,
+                                                     garment_body.vertices)
+    start = push_out(start, faces, subject)
+    return start, rest

@@ -1,0 +1,86 @@
+"""One sequence through every stage: spec -> body -> outfit -> simulation -> a record to write.
+
+This is the only place (with the CLI) that composes the stages; each stage knows only the
+hand-off types of datagen.types.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from datagen.errors import RejectedSequence
+from datagen.recipe import BodyConfig
+from datagen.spec import SceneSpec
+from datagen.types import BodySequence, Garment, SimResult
+
+
+@dataclass
+class SequenceRecord:
+    """What a worker hands back for one sequence: the data to write, or why it was rejected."""
+
+    spec: SceneSpec
+    status: str  # "ok" | "rejected"
+    body: BodySequence | None = None
+    garments: list[Garment] | None = None
+    sim: SimResult | None = None
+    stage: str | None = None  # where a rejection happened
+    reason: str | None = None
+    frames: tuple[int, int] | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def wall_time(self) -> float:
+        return float(sum(self.timings.values()))
+
+
+def sim_options_from_spec(spec: SceneSpec, fabrics: dict | None = None):
+    from datagen.sim.simulate import SimOptions
+
+    s = spec.simulation
+    return SimOptions(solver=s.solver, quality=s.quality, substeps=s.substeps,
+                      iterations=s.iterations, effects=s.effects,
+                      wind=tuple(s.wind) if s.wind else None, fabrics=dict(fabrics or {}))
+
+
+def run_sequence(
+    spec: SceneSpec,
+    body_model,
+    body_config: BodyConfig | None = None,
+    base_dir: Path | None = None,
+    templates_dir: Path | None = None,
+    simulate_cloth: bool = True,
+    fabrics: dict | None = None,
+) -> SequenceRecord:
+    """Run one sequence end to end. A RejectedSequence becomes a rejected record; any other
+    error propagates (it is a bug or bad input, not a property of the scene)."""
+    from datagen.body.sequence import build_body_sequence
+    from datagen.garment.outfit import dropped_parts_for, make_outfit
+    from datagen.motion.load import motion_from_spec
+    from datagen.sim.simulate import simulate
+
+    record = SequenceRecord(spec=spec, status="ok")
+    config = body_config or BodyConfig()
+    try:
+        t = time.perf_counter()
+        motion = motion_from_spec(spec.motion, base_dir)
+        dropped = dropped_parts_for(spec.outfit) if config.drop_unreached_parts else frozenset()
+        record.body = build_body_sequence(spec.subject, motion, spec.motion.lead_in, body_model,
+                                          config, dropped)
+        record.timings["body"] = time.perf_counter() - t
+        if spec.outfit.garments:
+            t = time.perf_counter()
+            record.garments = make_outfit(spec.outfit, record.body.rest, body_model,
+                                          templates_dir)
+            record.timings["outfit"] = time.perf_counter() - t
+            if simulate_cloth:
+                t = time.perf_counter()
+                record.sim = simulate(record.garments, record.body,
+                                      sim_options_from_spec(spec, fabrics))
+                record.timings["simulate"] = time.perf_counter() - t
+    except RejectedSequence as exc:
+        record.status = "rejected"
+        record.stage, record.reason, record.frames = exc.stage, exc.reason, exc.frames
+        record.body = record.garments = record.sim = None
+    return record
