@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -346,6 +347,31 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, so
         from datagen.render import preview_record
 
         preview_record(preview, record)
+
+
+@main.command()
+@click.option("--pipeline", required=True, type=click.Path(dir_okay=False),
+              help="Recipe YAML (pipelines/default.yaml, pipelines/cloth3d.yaml, ...).")
+@click.option("--out", required=True, type=click.Path(file_okay=False),
+              help="Dataset folder; an existing run of the same recipe is resumed.")
+@click.option("--n", type=int, default=None, help="Number of sequences (default: the recipe's).")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="Local worker processes (default: the number of cores).")
+@click.option("--scheduler", default=None,
+              help="Dask scheduler address (tcp://host:port) instead of local processes.")
+@click.option("--shard-size", type=click.IntRange(min=1), default=None,
+              help="Sequences per shard (default: the recipe's).")
+@click.option("--progress/--no-progress", default=True, show_default=True)
+@user_errors
+def dataset(pipeline, out, n, workers, scheduler, shard_size, progress) -> None:
+    """Run a recipe into a folder of shards, with a manifest and a dataset card; resumable."""
+    from datagen.pipeline.dataset import run_dataset
+
+    workers = workers or max(1, os.cpu_count() or 1)
+    rows = run_dataset(pipeline, out, n=n, workers=workers, scheduler=scheduler,
+                       shard_size=shard_size, progress=progress)
+    ok = sum(r["status"] == "ok" for r in rows)
+    click.echo(f"{out}: {ok} sequences, {len(rows) - ok} rejected; card: {out}/README.md")
 
 
 @main.command()

@@ -249,3 +249,29 @@ def test_bending_energy_is_resolution_independent(h):
     energy = 0.5 * np.sum(model.bend_stiffness * np.sum(c * c, axis=1))
     expected = fabric.bending * 0.4 * 0.4 / (2 * radius**2)
     assert energy == pytest.approx(expected, rel=0.1)
+
+
+def test_fabric_table_in_docs_is_current(repo_dir):
+    from datagen.sim.fabrics import fabric_table_markdown, preset_table_markdown
+
+    text = (repo_dir / "docs" / "fabrics.md").read_text()
+    assert fabric_table_markdown() in text
+    assert preset_table_markdown() in text
+
+
+def test_user_fabrics_from_yaml(tmp_path):
+    from datagen.errors import InputError
+    from datagen.sim.fabrics import load_fabrics
+
+    good = tmp_path / "f.yaml"
+    good.write_text("fabrics:\n  jersey:\n    base: cotton\n    stretch: 120.0\n")
+    jersey = load_fabrics(good)["jersey"]
+    assert jersey.stretch == 120.0 and jersey.density == FABRICS["cotton"].density
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("fabrics:\n  x:\n    base: cotton\n    strech: 1.0\n")
+    with pytest.raises(InputError, match="bad.yaml.*fabrics.x.strech"):
+        load_fabrics(bad)
+    neg = tmp_path / "neg.yaml"
+    neg.write_text("fabrics:\n  x:\n    base: cotton\n    density: -1.0\n")
+    with pytest.raises(InputError, match="fabrics.x.density"):
+        load_fabrics(neg)

@@ -177,3 +177,37 @@ def get_fabric(name: str, extra: dict[str, Fabric] | None = None) -> Fabric:
     if name not in table:
         raise InputError(None, "fabric", f"one of {', '.join(sorted(table))}", name)
     return table[name]
+
+
+def fabric_table_markdown() -> str:
+    """The built-in fabrics as a markdown table (docs/fabrics.md embeds it; a test keeps it in
+    sync)."""
+    head = (
+        "| fabric | density kg/m^2 | stretch N/m | compression N/m | shear N/m | bending N m | "
+        "stretch damping s | bending damping s | air drag kg/(m^2 s) | friction | thickness mm "
+        "| max strain |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+    )
+    rows = []
+    for f in FABRICS.values():
+        rows.append(
+            f"| {f.name} | {f.density:.3f} | {f.stretch:.1f} | {f.compression:.1f} | "
+            f"{f.shear:.1f} | {f.bending:.3g} | {f.stretch_damping:.3g} | "
+            f"{f.bending_damping:.3g} | {f.air_drag:.3f} | {f.friction:.2f} | "
+            f"{f.thickness * 1000:.1f} | {f.max_strain:.2f} |"
+        )
+    return head + "\n".join(rows) + "\n"
+
+
+def preset_table_markdown() -> str:
+    head = (
+        "| preset | quality | mass | tension | compression | shear | bending | tension damp. | "
+        "compr. damp. | shear damp. | air | bending damp. |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+    )
+    rows = [
+        f"| {name} | {p.quality} | {p.mass} | {p.tension} | {p.compression} | {p.shear} | "
+        f"{p.bending} | {p.tension_damping} | {p.compression_damping} | {p.shear_damping} | "
+        f"{p.air_damping} | {p.bending_damping} |"
+        for name, p in BLENDER_PRESETS.items()
+    ]
+    return head + "\n".join(rows) + "\n"
