@@ -1018,7 +1018,9 @@ def self_hash_build(x: V3, counts: I1, starts: I1, items: I1, inv_cell: REAL, ma
 def self_collide_one(i: ti.i32, x: V3, w: F1, owner: I1, rest: V3, starts: I1, items: I1,
                      inv_cell: REAL, mask: ti.i32, radius: REAL, min_rest: REAL):
     """Push vertex i and nearby vertices of the same garment apart to `radius`, unless they are
-    near each other in the rest shape too (neighbours in the fabric, not a fold)."""
+    near each other in the rest shape too (neighbours in the fabric, not a fold).
+
+    Cells are `radius` wide: the neighbours within `radius` lie in the 27 cells around."""
     base = ti.cast(ti.floor(x[i] * inv_cell), ti.i32)
     for nb in range(27):
         c = hash_cell(base + ti.math.ivec3(nb // 9 - 1, (nb // 3) % 3 - 1, nb % 3 - 1), mask)

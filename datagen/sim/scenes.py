@@ -43,14 +43,26 @@ def icosphere(radius: float, subdivisions: int = 4, center=(0.0, 0.0, 0.0)):
     return np.asarray(mesh.vertices) + np.asarray(center), np.asarray(mesh.faces, dtype=np.int32)
 
 
-def cylinder_mesh(
-    radius: float, height: float, sections: int = 48, rings: int = 24, caps: bool = True
-):
-    """A closed cylinder along z from 0 to height (outward normals)."""
-    mesh = trimesh.creation.cylinder(radius=radius, height=height, sections=sections)
-    mesh = mesh.subdivide_to_size(max_edge=height / rings) if rings else mesh
-    v = np.asarray(mesh.vertices) + np.array([0.0, 0.0, height / 2])
-    return v, np.asarray(mesh.faces, dtype=np.int32)
+def cylinder_mesh(radius: float, height: float, sections: int = 48, rings: int = 24):
+    """A closed cylinder along z from 0 to `height`, `rings` rows of quads around it (split
+    into triangles) and fan caps; outward normals."""
+    ang = np.linspace(0, 2 * np.pi, sections, endpoint=False)
+    zs = np.linspace(0, height, rings + 1)
+    ring = np.stack([radius * np.cos(ang), radius * np.sin(ang)], axis=1)
+    verts = [np.column_stack([ring, np.full(sections, z)]) for z in zs]
+    v = np.concatenate(verts + [np.array([[0.0, 0.0, 0.0], [0.0, 0.0, height]])])
+    bottom, top = len(v) - 2, len(v) - 1
+    faces = []
+    for k in range(rings):
+        for i in range(sections):
+            a, b = k * sections + i, k * sections + (i + 1) % sections
+            c, d = b + sections, a + sections
+            faces += [[a, b, c], [a, c, d]]
+    for i in range(sections):
+        a, b = i, (i + 1) % sections
+        faces.append([bottom, b, a])
+        faces.append([top, rings * sections + a, rings * sections + b])
+    return v, np.asarray(faces, dtype=np.int32)
 
 
 def tube(

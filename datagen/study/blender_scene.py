@@ -1,10 +1,12 @@
-"""Run inside Blender (`blender -b --python cloth_peer.py -- IN.npz OUT.npz`): simulate one of our
-reference scenes with Blender's own cloth solver and write the per-frame positions and timings.
+"""Run inside Blender (`blender -b --python blender_scene.py -- IN.npz OUT.npz`): simulate one of
+our study scenes with Blender's own cloth solver and write the per-frame positions and timings.
 
 IN.npz holds the cloth (`cloth_vertices`, `cloth_faces`), the collider's frames
-(`collider_frames` (F+1, Vc, 3), `collider_faces`), optional `pinned` vertex ids, and the settings
-(`fps`, `frames`, `quality`, preset values, `collision_distance`, `collision_quality`,
-`self_collision`). This file is the benchmark's peer, never a project dependency.
+(`collider_frames` (F+1, Vc, 3), `collider_faces`), optional `pinned` vertex ids with their
+per-frame targets `pin_frames` (F+1, P, 3), and the settings (`fps`, `frames`, `quality`, the
+preset values, `collision_distance`, `collision_quality`, `self_collision`,
+`collider_thickness`, `collider_friction`). Blender is the benchmark's peer, never a dependency:
+this script runs only inside Blender, started by datagen.study.blender.
 """
 
 import sys
@@ -58,9 +60,31 @@ def main():
     c.collision_quality = int(d["collision_quality"])
     c.use_self_collision = bool(d["self_collision"])
     if "pinned" in d.files and len(d["pinned"]):
+        pinned = [int(i) for i in d["pinned"]]
         group = cloth.vertex_groups.new(name="pin")
-        group.add([int(i) for i in d["pinned"]], 1.0, "REPLACE")
+        group.add(pinned, 1.0, "REPLACE")
         s.vertex_group_mass = "pin"
+        # Pinned vertices follow the cloth object's own (pre-simulation) mesh: animate it with
+        # one shape key per frame that moves the pinned vertices to their targets.
+        pins = d["pin_frames"]
+        base = np.asarray(d["cloth_vertices"], dtype=np.float32)
+        cloth.shape_key_add(name="basis")
+        keys = []
+        for k in range(len(pins)):
+            key = cloth.shape_key_add(name=f"p{k}")
+            co = base.copy()
+            co[pinned] = pins[k]
+            key.data.foreach_set("co", co.ravel())
+            keys.append(key)
+        for k, key in enumerate(keys):
+            for f in range(len(keys)):
+                key.value = 1.0 if f == k else 0.0
+                key.keyframe_insert("value", frame=f + 1)
+        for fc in cloth.data.shape_keys.animation_data.action.fcurves:
+            for kp in fc.keyframe_points:
+                kp.interpolation = "LINEAR"
+        # The cloth modifier must come after the shape keys it reads: it does (modifiers run
+        # on the shape-keyed mesh).
 
     frames_c = d["collider_frames"]
     collider = mesh_object("collider", frames_c[0], d["collider_faces"])

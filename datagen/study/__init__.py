@@ -1,0 +1,1 @@
+"""What accuracy costs in time: study scenes, runs of our solvers and of Blender's, metrics."""

@@ -1,0 +1,95 @@
+"""Blender's cloth as the peer: the same study scene, simulated by Blender 3.4 headless.
+
+Blender is found on the PATH (Debian's `blender` package); when it is missing the caller is told
+so and skips the peer. Blender never becomes a dependency of the project.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from datagen.sim.fabrics import BLENDER_PRESETS, get_fabric
+from datagen.sim.simulate import attach_pins, body_start_transform
+from datagen.study.run import Run
+from datagen.study.scenes import StudyScene
+
+SCRIPT = Path(__file__).with_name("blender_scene.py")
+
+
+def blender_executable() -> str | None:
+    return shutil.which("blender")
+
+
+def blender_version() -> str:
+    exe = blender_executable()
+    if exe is None:
+        return "absent"
+    out = subprocess.run([exe, "--version"], capture_output=True, text=True, timeout=60)
+    return out.stdout.splitlines()[0].strip() if out.stdout else "unknown"
+
+
+def scene_input(scene: StudyScene, quality: int) -> dict:
+    """The npz payload for blender_scene.py."""
+    x0 = np.concatenate([g.vertices for g in scene.garments]).astype(np.float64)
+    faces, offset = [], 0
+    pinned = []
+    for g in scene.garments:
+        faces.append(np.asarray(g.faces) + offset)
+        if g.pinned is not None:
+            pinned.append(np.asarray(g.pinned) + offset)
+        offset += len(g.vertices)
+    if scene.body is not None:
+        rot, shift = body_start_transform(scene.body)
+        x0 = x0 @ rot.T + shift
+    track = scene.track
+    collider = track.vertices
+    first = 0
+    if scene.body is not None:
+        # Blender sees no settle phase: it starts at the lead-in, from the same start.
+        first = 0
+    frames = len(collider) - 1 - first
+    pinned = np.concatenate(pinned) if pinned else np.zeros(0, np.int64)
+    pin_frames = np.zeros((frames + 1, len(pinned), 3))
+    if len(pinned):
+        pins = attach_pins(x0[pinned], collider[first].astype(np.float64), track.faces,
+                           track.face_mask)
+        pin_frames = np.array([pins.targets(collider[first + f].astype(np.float64), track.faces)
+                               for f in range(frames + 1)])
+    fabric = scene.garments[0].fabric
+    preset = BLENDER_PRESETS[fabric]
+    used = np.flatnonzero(track.face_mask)
+    return dict(
+        cloth_vertices=x0, cloth_faces=np.concatenate(faces), collider_frames=collider[first:],
+        collider_faces=track.faces[used], fps=track.fps, frames=frames, quality=quality,
+        mass=preset.mass, tension=preset.tension, compression=preset.compression,
+        shear=preset.shear, bending=preset.bending, tension_damping=preset.tension_damping,
+        compression_damping=preset.compression_damping, shear_damping=preset.shear_damping,
+        air_damping=preset.air_damping, bending_damping=preset.bending_damping,
+        collision_distance=max(get_fabric(fabric).thickness, 0.005), collision_quality=2,
+        self_collision=False, collider_thickness=0.01, collider_friction=5.0,
+        pinned=pinned, pin_frames=pin_frames,
+    )
+
+
+def run_blender(scene: StudyScene, quality: int, timeout: float = 3600.0) -> Run:
+    exe = blender_executable()
+    if exe is None:
+        raise RuntimeError("Blender is not installed (apt-get install blender)")
+    with tempfile.TemporaryDirectory() as tmp:
+        src, dst = Path(tmp) / "in.npz", Path(tmp) / "out.npz"
+        np.savez(src, **scene_input(scene, quality))
+        r = subprocess.run([exe, "-b", "--factory-startup", "--python-exit-code", "1",
+                            "--python", str(SCRIPT), "--", str(src), str(dst)],
+                           capture_output=True, text=True, timeout=timeout)
+        if r.returncode != 0 or not dst.exists():
+            raise RuntimeError(f"Blender failed: {r.stderr[-500:]}")
+        d = np.load(dst)
+        positions = d["positions"].astype(np.float64)
+        wall = float(d["frame_seconds"][1:].sum())  # frame 1 is the start state
+    frames = len(positions) - 1
+    return Run(f"blender q{quality}", positions, wall, frames / scene.track.fps, {})

@@ -1,0 +1,51 @@
+"""Run a study scene with one solver configuration; the trajectory and what it cost."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from datagen.sim.simulate import SimOptions, simulate
+from datagen.study.scenes import StudyScene
+
+
+@dataclass
+class Run:
+    label: str
+    positions: np.ndarray  # (F + 1, V, 3) float64, frame 0 = the start
+    wall: float  # seconds of simulation (set-up excluded)
+    simulated: float  # seconds of simulated time
+    qa: dict
+
+    @property
+    def seconds_per_simulated_second(self) -> float:
+        return self.wall / self.simulated
+
+
+_WARM: set = set()
+
+
+def run_ours(scene: StudyScene, solver: str, substeps: int, iterations: int,
+             label: str = "") -> Run:
+    options = SimOptions(solver=solver, substeps=substeps, iterations=iterations,
+                         effects="auto", frames=scene.frames, profile_every=0,
+                         settle_seconds=0.5 if scene.body is not None else 0.0)
+    key = (scene.name, solver)
+    if key not in _WARM:
+        # Compile the kernels first (Taichi compiles on first launch): time only simulation.
+        warm = SimOptions(solver=solver, substeps=2, iterations=1, effects="auto", frames=2,
+                          profile_every=0, settle_seconds=0.0)
+        simulate(scene.garments, scene.track if scene.body is None else scene.body, warm)
+        _WARM.add(key)
+    t = time.perf_counter()
+    result = simulate(scene.garments, scene.body if scene.body is not None else scene.track,
+                      options)
+    wall = time.perf_counter() - t
+    positions = np.concatenate([result.vertices[g.name] for g in scene.garments], axis=1)
+    n_steps = len(positions) - 1 + (scene.body.lead_in_frames if scene.body is not None else 0)
+    settle = int(round(options.settle_seconds * scene.track.fps))
+    simulated = (n_steps + settle) / scene.track.fps
+    return Run(label or f"{solver} {substeps}x{iterations}", positions.astype(np.float64),
+               wall, simulated, {k: np.asarray(v) for k, v in result.qa.items()})

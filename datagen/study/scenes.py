@@ -1,0 +1,115 @@
+"""Study scenes: deterministic cloth scenes that our solvers and Blender both simulate.
+
+Each scene is rebuilt from its name, fabric and resolution alone, so a worker process (a float64
+reference run, a Blender run) gets exactly the same geometry.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+from datagen.sim.scenes import cylinder_mesh, grid_sheet, icosphere, tube
+from datagen.sim.simulate import ColliderTrack
+from datagen.types import Garment
+
+FPS = 30.0
+SHEET_SIZES = {"coarse": 32, "4k": 64, "10k": 100}
+TUBE_SIZES = {"coarse": (48, 24), "5k": (100, 50), "10k": (140, 70)}
+
+
+@dataclass
+class StudyScene:
+    name: str
+    fabric: str
+    resolution: str
+    garments: list[Garment]
+    track: ColliderTrack
+    frames: int  # output frames after frame 0
+    horizon: int  # frames over which the dynamic error is measured
+    static_from: int  # frames from which the cloth is (nearly) at rest: the final drape
+    body: object = None  # a BodySequence for body scenes (start transform, pins)
+
+    @property
+    def n_vertices(self) -> int:
+        return sum(len(g.vertices) for g in self.garments)
+
+
+def sheet_sphere(fabric: str, resolution: str = "4k", frames: int = 60) -> StudyScene:
+    """A 1 m sheet released 25 cm above a 0.5 m sphere: it falls, hits at ~0.25 s and drapes."""
+    n = SHEET_SIZES[resolution]
+    sheet = grid_sheet(n, 1.0, 0.5, fabric=fabric)
+    sv, sf = icosphere(0.25, 4)
+    track = ColliderTrack(np.repeat(sv[None], frames + 1, axis=0), sf,
+                          np.ones(len(sf), bool), FPS)
+    return StudyScene("sheet_sphere", fabric, resolution, [sheet], track, frames, 30, frames)
+
+
+def cylinder_motion(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sideways swing (15 cm at 1 Hz) and a twist (0.6 rad at 1 Hz) of the cylinder."""
+    shift = np.stack([0.15 * np.sin(2 * np.pi * t), np.zeros_like(t), np.zeros_like(t)], axis=1)
+    angle = 0.6 * np.sin(2 * np.pi * t)
+    return shift, angle
+
+
+def _rz(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def tube_cylinder(fabric: str, resolution: str = "5k", frames: int = 60) -> StudyScene:
+    """A skirt-like tube hanging from a swinging, twisting cylinder (its top ring pinned)."""
+    around, along = TUBE_SIZES[resolution]
+    cv, cf = cylinder_mesh(0.10, 0.6, sections=64, rings=30)
+    skirt = tube(0.115, 0.40, around, along, top=0.58, fabric=fabric, flare=0.10)
+    skirt.pinned = skirt.loops["waist"]
+    t = np.arange(frames + 1) / FPS
+    shift, angle = cylinder_motion(t)
+    verts = np.array([cv @ _rz(a).T + s for s, a in zip(shift, angle, strict=True)])
+    track = ColliderTrack(verts, cf, np.ones(len(cf), bool), FPS)
+    return StudyScene("tube_cylinder", fabric, resolution, [skirt], track, frames, 30, frames)
+
+
+@functools.cache
+def _walking_body(action: str, frames: int, lead_in: int):
+    from datagen.body.anny_model import NEUTRAL_SHAPE, SHAPE_NAMES, default_body_model
+    from datagen.body.sequence import build_body_sequence
+    from datagen.motion.procedural import generate
+    from datagen.recipe import BodyConfig
+    from datagen.spec import SubjectSpec
+
+    subject = SubjectSpec(gender="female",
+                          shape=dict(zip(SHAPE_NAMES, NEUTRAL_SHAPE.tolist(), strict=True)))
+    return build_body_sequence(subject, generate(action, frames, FPS), lead_in,
+                               default_body_model(), BodyConfig())
+
+
+def garment_on_body(name: str, template: str, action: str, fabric: str,
+                    frames: int = 45) -> StudyScene:
+    """A shipped template (neutral female body, no shaping or cuts) on a body moving through a
+    procedural action; the lead-in is part of the scene (the measure starts when it ends)."""
+    from datagen.body.anny_model import default_body_model
+    from datagen.garment.outfit import make_outfit
+    from datagen.sim.simulate import track_of
+    from datagen.spec import GarmentSpec, OutfitSpec
+
+    lead_in = 10
+    body = _walking_body(action, frames + 1, lead_in)
+    spec = GarmentSpec(name=template, template=template, variant=template, fabric=fabric)
+    outfit = OutfitSpec(garments=(spec,), tightness=(-0.5, -0.5))
+    garments = make_outfit(outfit, body.rest, default_body_model())
+    return StudyScene(name, fabric, "1cm", garments, track_of(body), frames, 30, frames, body)
+
+
+def build_scene(name: str, fabric: str, resolution: str = "") -> StudyScene:
+    if name == "sheet_sphere":
+        return sheet_sphere(fabric, resolution or "4k")
+    if name == "tube_cylinder":
+        return tube_cylinder(fabric, resolution or "5k")
+    if name == "skirt_body":
+        return garment_on_body("skirt_body", "skirt", "spin", fabric)
+    if name == "tshirt_walk":
+        return garment_on_body("tshirt_walk", "tshirt", "walk", fabric)
+    raise ValueError(f"unknown study scene {name}")
