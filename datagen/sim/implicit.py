@@ -65,117 +65,9 @@ class ImplicitSolver(ClothSolver):
             self.kw = _nd(VEC4, np.zeros((1, 4), NP_REAL))
             self.bstiff = _nd(REAL, np.zeros(1, NP_REAL))
             self.bbeta = _nd(REAL, np.zeros(1, NP_REAL))
-        self.newton_iterations = 0
-        self.cg_iterations = 0
-        self.unconverged = 0
-
-    def _gradient(self, h: float) -> None:
-        e = self.effects
-        use_air = e.air_drag or e.wind
-        IK.gradient(
-            self.x,
-            self.xn,
-            self.v,
-            self.mass,
-            self.drag,
-            self.pinned,
-            self.g,
-            self.gravity,
-            self.wind,
-            h,
-            e.gravity,
-            use_air,
-        )
-        if self.n_springs:
-            IK.spring_gradient(
-                self.x,
-                self.xn,
-                self.g,
-                self.all_springs,
-                self.all_rest,
-                self.all_kt,
-                self.all_kc,
-                self.all_beta,
-                h,
-            )
-        if self.n_bends:
-            IK.bend_gradient(
-                self.x, self.xn, self.g, self.bends, self.kw, self.bstiff, self.bbeta, h
-            )
-
-    def _hv(self, h: float) -> None:
-        IK.hessian_product(
-            self.x,
-            self.mass,
-            self.drag,
-            self.p,
-            self.hp,
-            self.all_springs,
-            self.all_rest,
-            self.all_kt,
-            self.all_kc,
-            self.all_beta,
-            self.bends,
-            self.kw,
-            self.bstiff,
-            self.bbeta,
-            self.pinned,
-            h,
-            self.n_springs,
-            self.n_bends,
-            self.effects.air_drag or self.effects.wind,
-        )
-
-    def _solve_newton_step(self, h: float) -> float:
-        """One Newton step; returns the max vertex update (m)."""
-        s = self.settings
-        self._gradient(h)
-        IK.diagonal(
-            self.x,
-            self.mass,
-            self.drag,
-            self.diag,
-            self.all_springs,
-            self.all_rest,
-            self.all_kt,
-            self.all_kc,
-            self.all_beta,
-            self.bends,
-            self.kw,
-            self.bstiff,
-            self.bbeta,
-            h,
-            self.n_springs,
-            self.n_bends,
-            self.effects.air_drag or self.effects.wind,
-        )
-        IK.invert_blocks(self.diag, self.pinned)
-        # CG on H dx = -g, starting from dx = 0.
-        IK.negate_filtered(self.g, self.r, self.pinned)
-        self.dx.fill(0.0)
-        IK.precondition(self.diag, self.r, self.z, self.pinned)
-        self.p.copy_from(self.z)
-        rz = IK.dot(self.r, self.z)
-        r0 = rz
-        it = 0
-        while it < s.cg_max_iterations and rz > (s.cg_tolerance**2) * r0 and rz > 1e-30:
-            self._hv(h)
-            php = IK.dot(self.p, self.hp)
-            if php <= 0:
-                break
-            alpha = rz / php
-            IK.axpy(self.dx, alpha, self.p)
-            IK.axpy(self.r, -alpha, self.hp)
-            IK.precondition(self.diag, self.r, self.z, self.pinned)
-            rz_new = IK.dot(self.r, self.z)
-            IK.xpay(self.p, rz_new / rz, self.z)
-            rz = rz_new
-            it += 1
-        self.cg_iterations += it
-        if it >= s.cg_max_iterations:
-            self.unconverged += 1
-        IK.axpy(self.x, 1.0, self.dx)
-        return IK.max_norm(self.dx)
+        self.P = ti.ndarray(REAL, IK.P_SIZE)
+        self.Q = ti.ndarray(ti.i32, IK.Q_SIZE)
+        self.stats = _nd(ti.i32, np.zeros(3, np.int32))
 
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
         import time
@@ -184,22 +76,44 @@ class ImplicitSolver(ClothSolver):
         IK.inertial_guess(self.x, self.xn, self.v, self.pinned, h)
         self.xp.copy_from(self.xn)
         self._pins(s1)
-        for _ in range(max(1, self.settings.iterations)):
-            self.newton_iterations += 1
-            if self._solve_newton_step(h) < self.settings.tolerance:
-                break
+        st = self.settings
+        P = np.zeros(IK.P_SIZE, NP_REAL)
+        P[IK.P_H] = h
+        P[IK.P_GRAVITY : IK.P_GRAVITY + 3] = st.gravity
+        P[IK.P_WIND : IK.P_WIND + 3] = st.wind if self.effects.wind else (0.0, 0.0, 0.0)
+        P[IK.P_TOL] = st.tolerance
+        P[IK.P_CG_TOL] = st.cg_tolerance
+        Q = np.zeros(IK.Q_SIZE, np.int32)
+        Q[IK.Q_N_SPRINGS] = self.n_springs
+        Q[IK.Q_N_BENDS] = self.n_bends
+        Q[IK.Q_NEWTON_MAX] = max(1, st.iterations)
+        Q[IK.Q_CG_MAX] = st.cg_max_iterations
+        self.P.from_numpy(P)
+        self.Q.from_numpy(Q)
+        IK.newton_solve(
+            self.x, self.xn, self.v, self.mass, self.drag, self.pinned,
+            self.g, self.r, self.z, self.p, self.hp, self.dx, self.diag,
+            self.all_springs, self.all_rest, self.all_kt, self.all_kc, self.all_beta,
+            self.bends, self.kw, self.bstiff, self.bbeta,
+            self.P, self.Q, self.stats,
+            self.effects.gravity, self.effects.air_drag or self.effects.wind,
+        )  # fmt: skip
         self.costs["implicit_solve"] += time.perf_counter() - t
+        self.launches["implicit_solve"] += 1
         self._pins(s1)
         self._collide(collider, s0, s1, h)
         self._cloth_collisions(h)
-        self._run(
-            "integration",
-            K.finish,
-            self.x,
-            self.xp,
-            self.v,
-            self.w,
-            self.contact_n,
-            self.contact_v,
-            h,
-        )
+        self._run("integration", K.finish, self.x, self.xp, self.v, self.w, self.contact_n,
+                  self.contact_v, h)
+
+    @property
+    def newton_iterations(self) -> int:
+        return int(self.stats.to_numpy()[IK.S_NEWTON])
+
+    @property
+    def cg_iterations(self) -> int:
+        return int(self.stats.to_numpy()[IK.S_CG])
+
+    @property
+    def unconverged(self) -> int:
+        return int(self.stats.to_numpy()[IK.S_UNCONVERGED])

@@ -1,5 +1,10 @@
 """Taichi kernels of the implicit (backward Euler, Newton-PCG) solver. Matrix-free: the Hessian
-is applied spring by spring and stencil by stencil, never assembled."""
+is applied spring by spring and stencil by stencil, never assembled.
+
+`newton_solve` runs a whole substep's Newton iterations, each with its conjugate-gradient solve,
+in one serial launch (the reference runs take many small steps; a Python round trip per CG
+iteration would dominate them). The per-element work lives in functions shared by nothing else.
+"""
 
 import taichi as ti
 
@@ -8,6 +13,13 @@ from datagen.sim.precision import MAT3, REAL
 
 mat3 = MAT3
 M3 = ti.types.ndarray(dtype=mat3, ndim=1)
+
+# Scalars and counts of `newton_solve`, packed (a kernel takes at most 64 argument elements).
+P_H, P_GRAVITY, P_WIND, P_TOL, P_CG_TOL = 0, 1, 4, 7, 8
+P_SIZE = 9
+Q_N_SPRINGS, Q_N_BENDS, Q_NEWTON_MAX, Q_CG_MAX = range(4)
+Q_SIZE = 4
+S_NEWTON, S_CG, S_UNCONVERGED = range(3)  # statistics written back
 
 
 @ti.func
@@ -23,36 +35,39 @@ def spring_hessian(d: vec3, rest: REAL, k: REAL) -> mat3:
     return out
 
 
-@ti.kernel
-def gradient(
-    x: V3,
-    xn: V3,
-    vn: V3,
-    mass: F1,
-    drag: F1,
-    pinned: I1,
-    g: V3,
-    gravity: vec3,
-    wind: vec3,
-    h: REAL,
-    use_gravity: ti.template(),
-    use_air: ti.template(),
-):
-    """Inertia, gravity and air drag part of the gradient (springs and bends add theirs)."""
-    for i in x:
+@ti.func
+def spring_block(x: V3, springs: I2, rest: F1, k_t: F1, k_c: F1, beta: F1, e: ti.i32,
+                 h: REAL) -> mat3:
+    """Stiffness plus damping (divided by h) Hessian block of spring e."""
+    i = springs[e][0]
+    j = springs[e][1]
+    d = x[j] - x[i]
+    length = d.norm()
+    k = k_t[e]
+    if length < rest[e]:
+        k = k_c[e]
+    hb = spring_hessian(d, rest[e], k)
+    if length > 1e-9:
+        n = d / length
+        hb += beta[e] * k / h * n.outer_product(n)
+    return hb
+
+
+@ti.func
+def gradient_all(x: V3, xn: V3, vn: V3, mass: F1, drag: F1, g: V3, springs: I2, rest: F1,
+                 k_t: F1, k_c: F1, beta: F1, bends: I4, kw: V4, stiff: F1, bbeta: F1,
+                 gravity: vec3, wind: vec3, h: REAL, n_springs: ti.i32, n_bends: ti.i32,
+                 use_gravity: ti.template(), use_air: ti.template()):
+    """Gradient of the incremental potential: inertia, gravity, air drag, springs (with their
+    Rayleigh damping), bending."""
+    for i in range(x.shape[0]):
         gi = mass[i] * (x[i] - xn[i] - h * vn[i]) / (h * h)
         if ti.static(use_gravity):
             gi -= mass[i] * gravity
         if ti.static(use_air):
             gi += drag[i] * ((x[i] - xn[i]) / h - wind)
         g[i] = gi
-
-
-@ti.kernel
-def spring_gradient(
-    x: V3, xn: V3, g: V3, springs: I2, rest: F1, k_t: F1, k_c: F1, beta: F1, h: REAL
-):
-    for e in range(springs.shape[0]):
+    for e in range(n_springs):
         i = springs[e][0]
         j = springs[e][1]
         d = x[j] - x[i]
@@ -67,124 +82,58 @@ def spring_gradient(
             fe = (k * c + beta[e] * k * rate) * n  # force on i (pulls towards j when stretched)
             g[i] -= fe
             g[j] += fe
-
-
-@ti.kernel
-def bend_gradient(x: V3, xn: V3, g: V3, bends: I4, kw: V4, stiff: F1, beta: F1, h: REAL):
-    for b in range(bends.shape[0]):
+    for b in range(n_bends):
         s = bends[b]
         k = kw[b]
         c = k[0] * x[s[0]] + k[1] * x[s[1]] + k[2] * x[s[2]] + k[3] * x[s[3]]
-        cv = (
-            k[0] * (x[s[0]] - xn[s[0]])
-            + k[1] * (x[s[1]] - xn[s[1]])
-            + k[2] * (x[s[2]] - xn[s[2]])
-            + k[3] * (x[s[3]] - xn[s[3]])
-        ) / h
-        gb = stiff[b] * (c + beta[b] * cv)
+        cv = (k[0] * (x[s[0]] - xn[s[0]]) + k[1] * (x[s[1]] - xn[s[1]])
+              + k[2] * (x[s[2]] - xn[s[2]]) + k[3] * (x[s[3]] - xn[s[3]])) / h
+        gb = stiff[b] * (c + bbeta[b] * cv)
         for q in ti.static(range(4)):
             g[s[q]] += k[q] * gb
 
 
-@ti.kernel
-def diagonal(
-    x: V3,
-    mass: F1,
-    drag: F1,
-    diag: M3,
-    springs: I2,
-    rest: F1,
-    k_t: F1,
-    k_c: F1,
-    beta: F1,
-    bends: I4,
-    kw: V4,
-    stiff: F1,
-    bbeta: F1,
-    h: REAL,
-    n_springs: ti.i32,
-    n_bends: ti.i32,
-    use_air: ti.template(),
-):
-    """3x3 diagonal blocks of the Hessian, for the block-Jacobi preconditioner."""
-    for i in x:
+@ti.func
+def preconditioner(x: V3, mass: F1, drag: F1, diag: M3, pinned: I1, springs: I2, rest: F1,
+                   k_t: F1, k_c: F1, beta: F1, bends: I4, kw: V4, stiff: F1, bbeta: F1, h: REAL,
+                   n_springs: ti.i32, n_bends: ti.i32, use_air: ti.template()):
+    """Inverses of the Hessian's 3x3 diagonal blocks (block Jacobi); zero on pinned vertices."""
+    for i in range(x.shape[0]):
         dd = mass[i] / (h * h)
         if ti.static(use_air):
             dd += drag[i] / h
         diag[i] = dd * ti.Matrix.identity(REAL, 3)
     for e in range(n_springs):
-        i = springs[e][0]
-        j = springs[e][1]
-        d = x[j] - x[i]
-        k = k_t[e]
-        if d.norm() < rest[e]:
-            k = k_c[e]
-        hb = spring_hessian(d, rest[e], k)
-        length = d.norm()
-        if length > 1e-9:
-            n = d / length
-            hb += beta[e] * k / h * n.outer_product(n)
-        diag[i] += hb
-        diag[j] += hb
+        hb = spring_block(x, springs, rest, k_t, k_c, beta, e, h)
+        diag[springs[e][0]] += hb
+        diag[springs[e][1]] += hb
     for b in range(n_bends):
         s = bends[b]
         k = kw[b]
         coef = stiff[b] * (1.0 + bbeta[b] / h)
         for q in ti.static(range(4)):
             diag[s[q]] += coef * k[q] * k[q] * ti.Matrix.identity(REAL, 3)
-
-
-@ti.kernel
-def invert_blocks(diag: M3, pinned: I1):
-    for i in diag:
+    for i in range(x.shape[0]):
         if pinned[i] != 0:
             diag[i] = ti.Matrix.zero(REAL, 3, 3)
         else:
             diag[i] = diag[i].inverse()
 
 
-@ti.kernel
-def hessian_product(
-    x: V3,
-    mass: F1,
-    drag: F1,
-    p: V3,
-    out: V3,
-    springs: I2,
-    rest: F1,
-    k_t: F1,
-    k_c: F1,
-    beta: F1,
-    bends: I4,
-    kw: V4,
-    stiff: F1,
-    bbeta: F1,
-    pinned: I1,
-    h: REAL,
-    n_springs: ti.i32,
-    n_bends: ti.i32,
-    use_air: ti.template(),
-):
-    for i in x:
+@ti.func
+def hessian_times(x: V3, mass: F1, drag: F1, p: V3, out: V3, pinned: I1, springs: I2,
+                  rest: F1, k_t: F1, k_c: F1, beta: F1, bends: I4, kw: V4, stiff: F1, bbeta: F1,
+                  h: REAL, n_springs: ti.i32, n_bends: ti.i32, use_air: ti.template()):
+    for i in range(x.shape[0]):
         dd = mass[i] / (h * h)
         if ti.static(use_air):
             dd += drag[i] / h
         out[i] = dd * p[i]
     for e in range(n_springs):
-        i = springs[e][0]
-        j = springs[e][1]
-        d = x[j] - x[i]
-        length = d.norm()
-        k = k_t[e]
-        if length < rest[e]:
-            k = k_c[e]
-        hb = spring_hessian(d, rest[e], k)
-        if length > 1e-9:
-            n = d / length
-            hb += beta[e] * k / h * n.outer_product(n)
-        r = hb @ (p[i] - p[j])
-        out[i] += r
-        out[j] -= r
+        hb = spring_block(x, springs, rest, k_t, k_c, beta, e, h)
+        r = hb @ (p[springs[e][0]] - p[springs[e][1]])
+        out[springs[e][0]] += r
+        out[springs[e][1]] -= r
     for b in range(n_bends):
         s = bends[b]
         k = kw[b]
@@ -192,57 +141,80 @@ def hessian_product(
         coef = stiff[b] * (1.0 + bbeta[b] / h)
         for q in ti.static(range(4)):
             out[s[q]] += coef * k[q] * cp
-    for i in x:
+    for i in range(x.shape[0]):
         if pinned[i] != 0:
-            out[i] = p[i]
+            out[i] = p[i]  # Dirichlet rows: pinned vertices do not move in the solve
 
 
 @ti.kernel
-def precondition(diag: M3, r: V3, z: V3, pinned: I1):
-    for i in r:
-        if pinned[i] != 0:
-            z[i] = vec3(0.0)
-        else:
-            z[i] = diag[i] @ r[i]
-
-
-@ti.kernel
-def dot(a: V3, b: V3) -> ti.f64:
-    total = ti.cast(0.0, ti.f64)
-    for i in a:
-        total += ti.cast(a[i].dot(b[i]), ti.f64)
-    return total
-
-
-@ti.kernel
-def axpy(y: V3, a: REAL, x: V3):
-    """y += a x"""
-    for i in y:
-        y[i] += a * x[i]
-
-
-@ti.kernel
-def xpay(y: V3, a: REAL, x: V3):
-    """y = x + a y"""
-    for i in y:
-        y[i] = x[i] + a * y[i]
-
-
-@ti.kernel
-def negate_filtered(src: V3, dst: V3, pinned: I1):
-    for i in src:
-        if pinned[i] != 0:
-            dst[i] = vec3(0.0)
-        else:
-            dst[i] = -src[i]
-
-
-@ti.kernel
-def max_norm(a: V3) -> REAL:
-    m = 0.0
-    for i in a:
-        ti.atomic_max(m, a[i].norm())
-    return m
+def newton_solve(
+    x: V3, xn: V3, vn: V3, mass: F1, drag: F1, pinned: I1,
+    g: V3, r: V3, z: V3, p: V3, hp: V3, dx: V3, diag: M3,
+    springs: I2, rest: F1, k_t: F1, k_c: F1, beta: F1,
+    bends: I4, kw: V4, stiff: F1, bbeta: F1,
+    P: F1, Q: I1, stats: I1,
+    use_gravity: ti.template(), use_air: ti.template(),
+):  # fmt: skip
+    """Backward Euler for one substep: Newton from the current x (the caller sets the inertial
+    guess and the pinned positions), each step solved by block-Jacobi preconditioned CG with
+    pinned vertices filtered out (Baraff & Witkin), until the update is below the tolerance."""
+    h = P[P_H]
+    gravity = vec3(P[P_GRAVITY], P[P_GRAVITY + 1], P[P_GRAVITY + 2])
+    wind = vec3(P[P_WIND], P[P_WIND + 1], P[P_WIND + 2])
+    tol = P[P_TOL]
+    cg_tol = P[P_CG_TOL]
+    n_springs = Q[Q_N_SPRINGS]
+    n_bends = Q[Q_N_BENDS]
+    n = x.shape[0]
+    ti.loop_config(serialize=True)
+    for _newton in range(Q[Q_NEWTON_MAX]):
+        gradient_all(x, xn, vn, mass, drag, g, springs, rest, k_t, k_c, beta, bends, kw, stiff,
+                     bbeta, gravity, wind, h, n_springs, n_bends, use_gravity, use_air)
+        preconditioner(x, mass, drag, diag, pinned, springs, rest, k_t, k_c, beta, bends, kw,
+                       stiff, bbeta, h, n_springs, n_bends, use_air)
+        rz = ti.cast(0.0, ti.f64)
+        for i in range(n):
+            ri = -g[i]
+            if pinned[i] != 0:
+                ri = vec3(0.0)
+            r[i] = ri
+            dx[i] = vec3(0.0)
+            zi = diag[i] @ ri
+            z[i] = zi
+            p[i] = zi
+            rz += ti.cast(ri.dot(zi), ti.f64)
+        rz0 = rz
+        it = 0
+        while it < Q[Q_CG_MAX] and rz > cg_tol * cg_tol * rz0 and rz > 1e-30:
+            hessian_times(x, mass, drag, p, hp, pinned, springs, rest, k_t, k_c, beta, bends,
+                          kw, stiff, bbeta, h, n_springs, n_bends, use_air)
+            php = ti.cast(0.0, ti.f64)
+            for i in range(n):
+                php += ti.cast(p[i].dot(hp[i]), ti.f64)
+            if php <= 0.0:
+                break
+            alpha = rz / php
+            rz_new = ti.cast(0.0, ti.f64)
+            for i in range(n):
+                dx[i] += ti.cast(alpha, REAL) * p[i]
+                r[i] -= ti.cast(alpha, REAL) * hp[i]
+                z[i] = diag[i] @ r[i]
+                rz_new += ti.cast(r[i].dot(z[i]), ti.f64)
+            beta_cg = rz_new / rz
+            for i in range(n):
+                p[i] = z[i] + ti.cast(beta_cg, REAL) * p[i]
+            rz = rz_new
+            it += 1
+        stats[S_CG] += it
+        if it >= Q[Q_CG_MAX]:
+            stats[S_UNCONVERGED] += 1
+        step = 0.0
+        for i in range(n):
+            x[i] += dx[i]
+            step = ti.max(step, dx[i].norm())
+        stats[S_NEWTON] += 1
+        if step < tol:
+            break
 
 
 @ti.kernel
