@@ -404,5 +404,14 @@ def inspect(path, as_json) -> None:
     show(tree, "", 0)
 
 
+def _register_subcommands() -> None:
+    from datagen.io.commands import COMMANDS
+
+    for command in COMMANDS:
+        main.add_command(command)
+
+
+_register_subcommands()
+
 if __name__ == "__main__":
     main()

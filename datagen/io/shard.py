@@ -305,13 +305,11 @@ def read_positions(group: h5py.Group, name: str, frames=slice(None)) -> np.ndarr
     return (data.astype(np.float64) * float(step) + trans[..., None, :]).astype(np.float32)
 
 
-def write_garments(group: h5py.Group, garments, sim, lead_in: int, trans: np.ndarray,
-                   quantize: bool) -> None:
+def write_garments(group: h5py.Group, garments, sim, trans: np.ndarray, quantize: bool) -> None:
     g_root = group.create_group("garments")
     for garment in garments:
         g = g_root.create_group(garment.name)
-        g.attrs["type"] = garment.meta.get("variant", garment.category) if garment.meta \
-            else garment.category
+        g.attrs["type"] = (garment.meta or {}).get("variant") or garment.category
         g.attrs["category"] = garment.category
         g.attrs["fabric"] = garment.fabric
         g.attrs["tightness"] = np.asarray(garment.tightness, dtype=np.float64)
@@ -358,5 +356,4 @@ def write_record(writer: ShardWriter, record, store_body_vertices: bool = False,
     write_body(group, record.body, store_body_vertices)
     if record.garments:
         trans = record.body.trans[record.body.lead_in_frames:]
-        write_garments(group, record.garments, record.sim, record.body.lead_in_frames, trans,
-                       quantize)
+        write_garments(group, record.garments, record.sim, trans, quantize)

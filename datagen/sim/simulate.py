@@ -46,6 +46,9 @@ class SimOptions:
     profile_every: int = 30  # frames between per-effect cost samples (fused solvers)
     search_every: int = 5  # frames between full closest-triangle searches
     frames: int = 30  # output frames of a scene without a collider track
+    tolerance: float = 1e-5  # implicit: Newton stops below this update (m)
+    cg_tolerance: float = 1e-4  # implicit: relative residual of each CG solve
+    cg_max_iterations: int = 200
 
     def resolve_steps(self) -> tuple[int, int]:
         presets = QUALITY_PRESETS.get(self.solver)
@@ -229,6 +232,9 @@ class _Simulation:
         settings = SolverSettings(
             substeps=substeps,
             iterations=self.iterations,
+            tolerance=self.options.tolerance,
+            cg_tolerance=self.options.cg_tolerance,
+            cg_max_iterations=self.options.cg_max_iterations,
             wind=tuple(self.options.wind) if self.options.wind else (0.0, 0.0, 0.0),
         )
         return make_solver(self.options.solver, self.model, self.effects, settings)

@@ -28,10 +28,15 @@ _WARM: set = set()
 
 
 def run_ours(scene: StudyScene, solver: str, substeps: int, iterations: int,
-             label: str = "") -> Run:
+             label: str = "", settings=None) -> Run:
+    """Simulate the scene; `settings` (a SolverSettings) may set the implicit tolerances."""
+    extra = {}
+    if settings is not None:
+        extra = dict(tolerance=settings.tolerance, cg_tolerance=settings.cg_tolerance,
+                     cg_max_iterations=settings.cg_max_iterations)
     options = SimOptions(solver=solver, substeps=substeps, iterations=iterations,
                          effects="auto", frames=scene.frames, profile_every=0,
-                         settle_seconds=0.5 if scene.body is not None else 0.0)
+                         settle_seconds=0.5 if scene.body is not None else 0.0, **extra)
     key = (scene.name, solver)
     if key not in _WARM:
         # Compile the kernels first (Taichi compiles on first launch): time only simulation.

@@ -1,0 +1,300 @@
+"""The accuracy-versus-time study (`datagen bench accuracy`).
+
+For each scene and fabric:
+1. a converged reference: the implicit solver in float64 at substeps S0, 2 S0, 4 S0, ... until
+   halving the step changes the trajectory by less than 0.5 mm RMS over the horizon (or the
+   budget ends: then the report says how far it got);
+2. the sweep: our solvers by substeps by iterations (and, for the sheet, by mesh resolution),
+   each timed in this process and measured against the reference: RMS and maximum vertex
+   distance over the first second, the final drape, and the validity figures (strain beyond the
+   fabric's bound, penetration);
+3. Blender's cloth at quality 5, 10, 20 against its own highest affordable quality, and the
+   distance between Blender's converged result and ours.
+Outputs: a CSV, a Pareto plot (error against time, log-log) and the markdown report.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from datagen.study.metrics import final_distance, max_distance, rms_distance
+
+CONVERGED_MM = 0.5
+
+
+@dataclass
+class Row:
+    scene: str
+    fabric: str
+    resolution: str
+    series: str  # solver name, or "blender"
+    substeps: int
+    iterations: int
+    vertices: int
+    seconds_per_sim_second: float
+    rms_mm: float
+    max_mm: float
+    final_mm: float
+    strain_p999: float
+    deep_share: float
+    status: str = "ok"
+    note: str = ""
+
+
+@dataclass
+class Plan:
+    scenes: list[tuple[str, str]]  # (scene, resolution)
+    fabrics: list[str]
+    configs: dict[str, list[tuple[int, int]]]  # solver -> (substeps, iterations)
+    resolutions: dict[str, list[str]] = field(default_factory=dict)  # scene -> extra resolutions
+    reference_start: int = 40
+    reference_levels: int = 5
+    reference_budget_s: float = 1800.0
+    blender_qualities: list[int] = field(default_factory=lambda: [5, 10, 20])
+    blender_converged: int = 40
+
+
+def quick_plan() -> Plan:
+    return Plan(
+        scenes=[("sheet_sphere", "coarse")],
+        fabrics=["cotton"],
+        configs={"xpbd": [(5, 1), (10, 1), (20, 1), (40, 1)], "implicit": [(2, 4), (5, 4)],
+                 "explicit": [(200, 1)]},
+        reference_start=40, reference_levels=3, reference_budget_s=240.0,
+        blender_qualities=[5], blender_converged=10,
+    )
+
+
+def full_plan() -> Plan:
+    xpbd = [(5, 1), (10, 1), (20, 1), (40, 1), (80, 1), (10, 2), (20, 2)]
+    return Plan(
+        scenes=[("sheet_sphere", "4k"), ("skirt_body", ""), ("tshirt_walk", "")],
+        fabrics=["cotton", "denim"],
+        configs={"xpbd": xpbd, "implicit": [(1, 4), (2, 4), (5, 4), (10, 4)],
+                 "explicit": [(200, 1), (400, 1)]},
+        resolutions={"sheet_sphere": ["coarse", "10k"]},
+        reference_start=40, reference_levels=5, reference_budget_s=2400.0,
+    )
+
+
+# -- runs in other processes -------------------------------------------------------------------
+def run_worker(scene: str, fabric: str, resolution: str, solver: str, substeps: int,
+               iterations: int, fp64: bool) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "run.npz"
+        cmd = [sys.executable, "-m", "datagen.study.worker", "--scene", scene, "--fabric",
+               fabric, "--resolution", resolution, "--solver", solver, "--substeps",
+               str(substeps), "--iterations", str(iterations), "--out", str(out)]
+        if fp64:
+            cmd.append("--fp64")
+        r = subprocess.run(cmd, capture_output=True, text=True)
+        if r.returncode != 0:
+            raise RuntimeError(f"study worker failed: {r.stderr[-800:]}")
+        d = np.load(out)
+        return {k: d[k] for k in d.files}
+
+
+def reference_ladder(scene: str, fabric: str, resolution: str, plan: Plan, horizon: int,
+                     log) -> tuple[np.ndarray, list[dict]]:
+    """Implicit float64 runs at doubling substeps; the finest one is the reference."""
+    ladder, previous, start = [], None, time.time()
+    substeps = plan.reference_start
+    finest = None
+    for level in range(plan.reference_levels):
+        d = run_worker(scene, fabric, resolution, "implicit", substeps, 20, fp64=True)
+        entry = {"substeps": substeps, "seconds": float(d["wall"])}
+        if previous is not None:
+            entry["rms_to_previous_mm"] = 1000 * rms_distance(d["positions"], previous, horizon)
+        ladder.append(entry)
+        log(f"  reference implicit {substeps} substeps: {entry}")
+        previous = finest = d["positions"]
+        done = entry.get("rms_to_previous_mm", np.inf) < CONVERGED_MM
+        spent = time.time() - start
+        if done or spent + 2.2 * float(d["wall"]) > plan.reference_budget_s:
+            break
+        substeps *= 2
+        del level
+    return finest, ladder
+
+
+# -- the sweep ---------------------------------------------------------------------------------
+def _probe_map(src_rest: np.ndarray, src_faces: np.ndarray, probes: np.ndarray):
+    """Barycentric coordinates of probe points on a (rest) mesh, to compare meshes of different
+    resolutions at the same material points."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(src_rest, src_faces, process=False)
+    closest, _, tri = trimesh.proximity.closest_point(mesh, probes)
+    bary = trimesh.triangles.points_to_barycentric(src_rest[src_faces[tri]], closest)
+    return src_faces[tri], bary
+
+
+def _at_probes(traj: np.ndarray, mapping) -> np.ndarray:
+    idx, bary = mapping
+    return np.einsum("pk,fpkd->fpd", bary, traj[:, idx])
+
+
+def _row(scene, fabric, resolution, series, sub, it, vertices, run_positions, ref, horizon,
+         seconds_per_sim, qa, note="") -> Row:
+    return Row(
+        scene=scene, fabric=fabric, resolution=resolution, series=series, substeps=sub,
+        iterations=it, vertices=vertices, seconds_per_sim_second=seconds_per_sim,
+        rms_mm=1000 * rms_distance(run_positions, ref, horizon),
+        max_mm=1000 * max_distance(run_positions, ref, horizon),
+        final_mm=1000 * final_distance(run_positions, ref),
+        strain_p999=float(np.max(qa.get("strain_p999", [np.nan]))),
+        deep_share=float(np.max(qa.get("deep_share", [np.nan]))),
+        note=note,
+    )
+
+
+def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=print) -> dict:
+    from datagen.errors import RejectedSequence
+    from datagen.study.run import run_ours
+    from datagen.study.scenes import build_scene
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    plan = quick_plan() if quick else full_plan()
+    rows: list[Row] = []
+    ladders: dict[str, list[dict]] = {}
+    model_gap: dict[str, float] = {}
+    from datagen.study import blender as peer
+
+    have_blender = blender and peer.blender_executable() is not None
+    if blender and not have_blender:
+        log("Blender is not installed: the peer series is skipped (apt-get install blender).")
+    t_start = time.time()
+    for scene_name, resolution in plan.scenes:
+        for fabric in plan.fabrics:
+            key = f"{scene_name}/{fabric}"
+            log(f"{key}: reference")
+            scene = build_scene(scene_name, fabric, resolution)
+            horizon = scene.horizon + 1
+            ref, ladders[key] = reference_ladder(scene_name, fabric, resolution, plan,
+                                                 horizon, log)
+            for solver, configs in plan.configs.items():
+                for sub, it in configs:
+                    try:
+                        run = run_ours(scene, solver, sub, it)
+                    except RejectedSequence as exc:
+                        rows.append(Row(scene_name, fabric, resolution, solver, sub, it,
+                                        scene.n_vertices, np.nan, np.nan, np.nan, np.nan,
+                                        np.nan, np.nan, "rejected", exc.reason))
+                        log(f"  {solver} {sub}x{it}: rejected ({exc.reason})")
+                        continue
+                    rows.append(_row(scene_name, fabric, resolution, solver, sub, it,
+                                     scene.n_vertices, run.positions, ref, horizon,
+                                     run.seconds_per_simulated_second, run.qa))
+                    log(f"  {solver} {sub}x{it}: {asdict(rows[-1])}")
+            for other in plan.resolutions.get(scene_name, []):
+                alt = build_scene(scene_name, fabric, other)
+                mapping = _probe_map(np.concatenate([g.rest for g in alt.garments]),
+                                     np.concatenate([g.faces for g in alt.garments]),
+                                     np.concatenate([g.rest for g in scene.garments]))
+                for sub, it in plan.configs["xpbd"][1:4]:
+                    run = run_ours(alt, "xpbd", sub, it)
+                    rows.append(_row(scene_name, fabric, other, "xpbd", sub, it,
+                                     alt.n_vertices, _at_probes(run.positions, mapping), ref,
+                                     horizon, run.seconds_per_simulated_second, run.qa,
+                                     "measured at the reference mesh's vertices"))
+                    log(f"  xpbd {other} {sub}x{it}: {asdict(rows[-1])}")
+            if have_blender:
+                converged = peer.run_blender(scene, plan.blender_converged)
+                model_gap[key] = 1000 * rms_distance(converged.positions, ref, horizon)
+                for q in plan.blender_qualities:
+                    run = peer.run_blender(scene, q)
+                    rows.append(_row(scene_name, fabric, resolution, "blender", q, 1,
+                                     scene.n_vertices, run.positions, converged.positions,
+                                     horizon, run.seconds_per_simulated_second, {},
+                                     f"against Blender quality {plan.blender_converged}"))
+                    log(f"  blender q{q}: {asdict(rows[-1])}")
+    summary = {
+        "quick": quick, "minutes": (time.time() - t_start) / 60, "ladders": ladders,
+        "blender_vs_ours_mm": model_gap, "blender": peer.blender_version() if have_blender
+        else "absent", "plan": asdict(plan),
+    }
+    write_outputs(out, rows, summary)
+    return summary
+
+
+def write_outputs(out: Path, rows: list[Row], summary: dict) -> None:
+    with open(out / "accuracy.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(asdict(rows[0]).keys()))
+        w.writeheader()
+        for r in rows:
+            w.writerow(asdict(r))
+    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
+    plot(out / "accuracy-vs-time.png", rows)
+
+
+def pareto(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points not beaten in both time and error (lower is better)."""
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], points[i][1]))
+    front, best = [], np.inf
+    for i in order:
+        if points[i][1] < best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def plot(path: Path, rows: list[Row], presets: dict[str, tuple[int, int]] | None = None) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = sorted({(r.scene, r.fabric) for r in rows})
+    fig, axes = plt.subplots(1, len(keys), figsize=(5.2 * len(keys), 4.4), squeeze=False)
+    colours = {"xpbd": "tab:blue", "implicit": "tab:orange", "explicit": "tab:green",
+               "blender": "tab:red"}
+    for ax, (scene, fabric) in zip(axes[0], keys, strict=True):
+        for series, colour in colours.items():
+            pts = [r for r in rows if r.scene == scene and r.fabric == fabric
+                   and r.series == series and r.status == "ok" and r.rms_mm > 0]
+            if not pts:
+                continue
+            ax.scatter([r.seconds_per_sim_second for r in pts], [r.rms_mm for r in pts],
+                       color=colour, label=series, s=22, alpha=0.85)
+            for r in pts:
+                tag = f"q{r.substeps}" if series == "blender" else f"{r.substeps}x{r.iterations}"
+                if r.resolution not in ("", "1cm", pts[0].resolution):
+                    tag += f" {r.resolution}"
+                ax.annotate(tag, (r.seconds_per_sim_second, r.rms_mm), fontsize=6,
+                            xytext=(2, 2), textcoords="offset points")
+        if presets:
+            for name, (sub, it) in presets.items():
+                for r in rows:
+                    if (r.scene, r.fabric, r.series, r.substeps, r.iterations) == (
+                            scene, fabric, "xpbd", sub, it) and r.resolution not in ("coarse",
+                                                                                      "10k"):
+                        ax.scatter([r.seconds_per_sim_second], [r.rms_mm], s=140,
+                                   facecolors="none", edgecolors="black")
+                        ax.annotate(name, (r.seconds_per_sim_second, r.rms_mm), fontsize=8,
+                                    xytext=(6, -10), textcoords="offset points", weight="bold")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("wall-clock seconds per simulated second")
+        ax.set_ylabel("RMS error over the first second (mm)")
+        ax.set_title(f"{scene}, {fabric}")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main_cli(out: str, quick: bool, blender: bool) -> dict:
+    os.environ.setdefault("PYTHONWARNINGS", "ignore")
+    return run_study(out, quick=quick, blender=blender)

@@ -1,0 +1,232 @@
+"""`datagen validate` on clean and damaged synthetic datasets: every kind of damage is reported
+with the file and the sequence, never as a traceback, and makes the command exit non-zero."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+sys.path.insert(0, str(Path(__file__).parent))
+import shard_factory as sf  # noqa: E402
+
+from datagen.io.commands import validate as validate_command  # noqa: E402
+from datagen.io.validate import Problem, validate, validate_report  # noqa: E402
+
+
+def run_cli(*args) -> tuple[int, str]:
+    group = click.Group(commands={"validate": validate_command})
+    result = CliRunner().invoke(group, ["validate", *map(str, args)])
+    assert result.exception is None or isinstance(result.exception, SystemExit), result.output
+    return result.exit_code, result.output
+
+
+def errors(problems: list[Problem]) -> list[Problem]:
+    return [p for p in problems if p.severity == "error"]
+
+
+def only_error(problems: list[Problem]) -> Problem:
+    errs = errors(problems)
+    assert len(errs) == 1, "\n".join(map(str, problems))
+    return errs[0]
+
+
+@pytest.fixture
+def dataset(tmp_path) -> sf.SyntheticDataset:
+    return sf.make_dataset(tmp_path / "ds")
+
+
+@pytest.mark.parametrize("kwargs", [{}, dict(store_body_vertices=True, quantize=True)])
+def test_clean_dataset_passes(tmp_path, kwargs):
+    ds = sf.make_dataset(tmp_path, **kwargs)
+    report = validate_report(ds.root)
+    assert report.problems == [] and report.ok
+    assert (len(report.shards), report.sequences, report.rejected) == (2, 3, 1)
+    assert validate(ds.shards[0]) == []
+    code, out = run_cli(ds.root)
+    assert code == 0 and out.startswith("OK: 2 shard(s), 3 sequence(s), 1 rejected")
+    code, out = run_cli(ds.root, "--json")
+    assert code == 0 and json.loads(out)["ok"] is True
+
+
+def test_flipped_byte(dataset):
+    shard = dataset.shards[0]
+    with h5py.File(shard, "r+") as f:  # bypasses the writer: the checksum is not updated
+        ds = f["sequences/7-000000/garments/upper/vertices"]
+        frame = ds[4]
+        frame.view(np.uint32)[17, 1] ^= 1 << 12
+        ds[4] = frame
+    p = only_error(validate(dataset.root))
+    assert (p.file, p.sequence) == (str(shard), "7-000000")
+    assert "garments/upper/vertices" in p.message and "checksum" in p.message
+    code, out = run_cli(dataset.root)
+    assert code == 1
+    assert f"error: {shard}: 7-000000: garments/upper/vertices: checksum mismatch" in out
+    assert "FAILED" in out and "1 error(s)" in out
+    report = json.loads(run_cli(dataset.root, "--json")[1])
+    assert report["ok"] is False and report["problems"][0]["sequence"] == "7-000000"
+
+
+def test_flipped_byte_in_body_skinning(dataset):
+    with h5py.File(dataset.shards[1], "r+") as f:
+        ds = f["sequences/7-000003/body/skinning/weights"]
+        w = ds[()]
+        w[5, 0] = np.nextafter(w[5, 0], np.float32(1))
+        ds[...] = w
+    p = only_error(validate(dataset.root))
+    assert p.sequence == "7-000003" and "body/skinning/weights: checksum" in p.message
+
+
+def test_truncated_shard(dataset):
+    shard = dataset.shards[0]
+    data = shard.read_bytes()
+    shard.write_bytes(data[: len(data) // 2])
+    problems = validate(dataset.root)
+    p = only_error(problems)  # one problem for the file; its manifest rows add none
+    assert p.file == str(shard) and p.sequence is None
+    assert "unreadable shard" in p.message and "truncated" in p.message
+    code, out = run_cli(dataset.root)
+    assert code == 1 and "Traceback" not in out and str(shard) in out
+    assert only_error(validate(shard)).file == str(shard)  # the file on its own
+    code, out = run_cli(shard)
+    assert code == 1 and "unreadable shard" in out
+
+
+def test_not_hdf5(tmp_path):
+    bogus = tmp_path / "x.h5"
+    bogus.write_text("hello")
+    p = only_error(validate(bogus))
+    assert p.file == str(bogus) and "unreadable shard" in p.message
+
+
+def test_other_format_version(dataset):
+    shard = dataset.shards[1]
+    with h5py.File(shard, "r+") as f:
+        f.attrs["format_version"] = 2
+    p = only_error(validate(dataset.root))
+    assert p.file == str(shard) and "format_version is 2" in p.message
+    assert run_cli(dataset.root)[0] == 1
+
+
+def _rows(ds: sf.SyntheticDataset) -> list[dict]:
+    return [json.loads(line) for line in (ds.root / "manifest.jsonl").read_text().splitlines()]
+
+
+def test_manifest_wrong_shard(dataset):
+    rows = _rows(dataset)
+    for row in rows:
+        if row["id"] == "7-000001":
+            row["shard"] = "shard-00001.h5"
+    sf.write_manifest(dataset.root, rows)
+    p = only_error(validate(dataset.root))
+    assert p.file.endswith("manifest.jsonl") and p.sequence == "7-000001"
+    assert "listed in shard-00001.h5 but it is in shard-00000.h5" in p.message
+    code, out = run_cli(dataset.root)
+    assert code == 1 and "7-000001" in out
+
+
+def test_manifest_missing_sequence(dataset):
+    rows = [r for r in _rows(dataset) if r["id"] != "7-000003"]
+    sf.write_manifest(dataset.root, rows)
+    p = only_error(validate(dataset.root))
+    assert p.sequence == "7-000003" and "in shard-00001.h5 but missing from the manifest" in \
+        p.message
+    assert run_cli(dataset.root)[0] == 1
+
+
+def test_manifest_duplicate_and_unknown_rows(dataset):
+    rows = _rows(dataset)
+    ghost = dict(rows[0], id="7-000009", index=9)
+    flipped = dict(rows[2], status="ok")  # 7-000002 is rejected in its shard
+    assert rows[2]["id"] == "7-000002"
+    sf.write_manifest(dataset.root, rows[:2] + [flipped] + rows[3:] + [rows[1], ghost])
+    problems = errors(validate(dataset.root))
+    text = "\n".join(map(str, problems))
+    assert len(problems) == 3, text
+    by_id = {p.sequence: p.message for p in problems}
+    assert "listed 2 times (lines 2, 5)" in by_id["7-000001"]
+    assert "not in shard-00000.h5" in by_id["7-000009"]
+    assert "status 'ok' but shard-00000.h5 has it rejected" in by_id["7-000002"]
+
+
+def test_manifest_missing_file(dataset):
+    (dataset.root / "manifest.jsonl").unlink()
+    p = only_error(validate(dataset.root))
+    assert p.file.endswith("manifest.jsonl") and "missing" in p.message
+
+
+def test_sequence_in_two_shards(dataset):
+    sf.write_shard(dataset.root / "shard-00002.h5", [sf.make_record(3, garments=("lower",),
+                                                                    split="test").record])
+    p = only_error(validate(dataset.root))
+    assert p.file.endswith("shard-00002.h5") and p.sequence == "7-000003"
+    assert "also in shard-00001.h5" in p.message
+
+
+def test_tmp_leftover_is_a_warning(dataset):
+    tmp = dataset.root / "shard-00002.h5.tmp"
+    tmp.write_bytes(b"\x89HDF partial")
+    report = validate_report(dataset.root)
+    assert report.ok and [p.file for p in report.warnings] == [str(tmp)]
+    code, out = run_cli(dataset.root)
+    assert code == 0 and f"warning: {tmp}: leftover temporary file" in out
+    assert "0 error(s), 1 warning(s)" in out
+
+
+def _single(tmp_path, edit, quantize=False) -> list[Problem]:
+    synth = sf.make_record(0)
+    edit(synth.record)
+    path = sf.write_shard(tmp_path / "one.h5", [synth.record], quantize=quantize)
+    return validate(path)
+
+
+def test_qa_limits(tmp_path):
+    def deep(record):
+        record.sim.qa["deep_share"][6] = 0.05
+
+    p = only_error(_single(tmp_path, deep))
+    assert p.sequence == "7-000000"
+    assert "qa/deep_share reaches 0.05 at frame 6" in p.message and "0.01" in p.message
+    (tmp_path / "one.h5").unlink()
+
+    def strain(record):  # cotton 0.25 and denim 0.20: the larger applies to the outfit
+        record.sim.qa["strain_p999"][:] = 0.3
+        record.sim.qa["kinetic_energy"][2] = -1.0
+
+    problems = _single(tmp_path, strain)
+    messages = " | ".join(p.message for p in errors(problems))
+    assert len(errors(problems)) == 2, messages
+    assert "qa/strain_p999 reaches 0.3" in messages and "max_strain 0.25" in messages
+    assert "qa/kinetic_energy: negative" in messages
+    as_warnings = validate(tmp_path / "one.h5", qa="warning")
+    assert len(as_warnings) == 2 and not errors(as_warnings)
+    assert validate(tmp_path / "one.h5", qa="off") == []
+    code, _ = run_cli(tmp_path / "one.h5", "--qa", "warning")
+    assert code == 0
+
+
+def test_shapes_indices_and_finiteness(tmp_path):
+    def damage(record):
+        record.garments[0].faces[7, 2] = 9999  # upper: past its 240 vertices
+        record.sim.vertices["lower"][2, 5, 0] = np.nan
+        record.sim.vertices["upper"] = record.sim.vertices["upper"][:-1]  # a frame short
+
+    problems = errors(_single(tmp_path, damage))
+    text = "\n".join(map(str, problems))
+    assert len(problems) == 3, text
+    assert "garments/upper/faces: indices in [0, 9999], expected [0, 239]" in text
+    assert "garments/lower/vertices: non-finite values" in text
+    assert "garments/upper/vertices: shape (9, 240, 3), expected (10, 240, 3)" in text
+    assert all(p.sequence == "7-000000" for p in problems)
+
+
+def test_missing_path_and_empty_folder(tmp_path):
+    assert "no shard files" in only_error(validate(tmp_path)).message
+    code, out = run_cli(tmp_path / "nope")
+    assert code == 2 and "does not exist" in out
