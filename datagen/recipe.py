@@ -107,6 +107,26 @@ class SimulationConfig:
     quality: str = "default"
     effects: str | tuple[str, ...] = "auto"
     wind: tuple[float, float, float] | None = None
+    settle_seconds: float = 0.5  # the outfit settles on the rest pose before the lead-in
+
+    def validate(self, source, path: str) -> None:
+        from datagen.sim.simulate import QUALITY_PRESETS
+
+        if self.solver not in QUALITY_PRESETS:
+            raise InputError(source, f"{path}.solver", f"one of {', '.join(QUALITY_PRESETS)}",
+                             self.solver)
+        if self.quality not in QUALITY_PRESETS[self.solver]:
+            raise InputError(source, f"{path}.quality",
+                             f"one of {', '.join(QUALITY_PRESETS[self.solver])}", self.quality)
+        check_range(self.settle_seconds, 0.0, 10.0, source, f"{path}.settle_seconds")
+        if not isinstance(self.effects, str) or self.effects not in ("auto", "all"):
+            from datagen.sim.effects import EFFECT_NAMES
+
+            names = self.effects.split(",") if isinstance(self.effects, str) else self.effects
+            for name in names:
+                if name not in EFFECT_NAMES:
+                    raise InputError(source, f"{path}.effects",
+                                     f"auto, all, or names from {', '.join(EFFECT_NAMES)}", name)
 
 
 @dataclass(frozen=True)

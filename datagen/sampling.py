@@ -109,7 +109,8 @@ def sample_motion(loaded: LoadedRecipe, rng: np.random.Generator) -> MotionSpec:
 
 def sample_simulation(loaded: LoadedRecipe, rng: np.random.Generator) -> SimSpec:
     cfg = loaded.recipe.simulation
-    return SimSpec(solver=cfg.solver, quality=cfg.quality, effects=cfg.effects, wind=cfg.wind)
+    return SimSpec(solver=cfg.solver, quality=cfg.quality, effects=cfg.effects, wind=cfg.wind,
+                   settle_seconds=cfg.settle_seconds)
 
 
 def sample_outfit(

@@ -76,6 +76,7 @@ class SimSpec:
     iterations: int | None = None
     effects: str | tuple[str, ...] = "auto"
     wind: tuple[float, float, float] | None = None  # m/s; None: no wind
+    settle_seconds: float = 0.5
 
 
 @dataclass(frozen=True)

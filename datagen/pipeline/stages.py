@@ -41,7 +41,8 @@ def sim_options_from_spec(spec: SceneSpec, fabrics: dict | None = None):
     s = spec.simulation
     return SimOptions(solver=s.solver, quality=s.quality, substeps=s.substeps,
                       iterations=s.iterations, effects=s.effects,
-                      wind=tuple(s.wind) if s.wind else None, fabrics=dict(fabrics or {}))
+                      wind=tuple(s.wind) if s.wind else None, fabrics=dict(fabrics or {}),
+                      settle_seconds=s.settle_seconds)
 
 
 def run_sequence(
