@@ -405,10 +405,12 @@ def inspect(path, as_json) -> None:
 
 
 def _register_subcommands() -> None:
+    from datagen.garment.commands import templates
     from datagen.io.commands import COMMANDS
 
     for command in COMMANDS:
         main.add_command(command)
+    main.add_command(templates)
 
 
 _register_subcommands()

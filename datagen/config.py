@@ -77,6 +77,10 @@ def _convert(tp: Any, value: Any, source: str | Path | None, path: str) -> Any:
         if not isinstance(value, dict):
             raise InputError(source, path, "a mapping", value)
         return from_mapping(tp, value, source, path)
+    if tp is dict:  # a section parsed by its own stage (e.g. the outfit): a mapping, as given
+        if not isinstance(value, dict):
+            raise InputError(source, path, "a mapping", value)
+        return dict(value)
     if origin is dict:
         key_t, val_t = get_args(tp)
         if not isinstance(value, dict):

@@ -31,6 +31,9 @@ LOWER_TEMPLATES = ("trousers", "skirt")
 FULL_BODY = {"jumpsuit": "trousers", "dress": "skirt"}  # sewn from a top and this
 FABRICS = ("cotton", "silk", "denim", "leather")
 UPPER_FABRICS = ("cotton", "silk")
+# Sleeve cut (metres along the sleeve axis from the armhole) beyond which the forearm, bending at
+# the elbow (about 0.25 m out), can reach the sleeve: the collider then keeps the forearms.
+FOREARM_SLEEVE = 0.18
 ELASTIC_ROLES = ("sleeve_l_end", "sleeve_r_end", "leg_l_end", "leg_r_end")
 
 
@@ -44,15 +47,16 @@ class OutfitConfig:
     templates: str = ""  # folder of templates/<gender>/<name>.obj; "" = the shipped ones
     full_body_probability: float = 0.3
     upper: dict[str, float] = field(
-        default_factory=lambda: {"tshirt": 0.4, "shirt": 0.15, "polo": 0.15, "top": 0.3})
+        default_factory=lambda: {"tshirt": 0.4, "shirt": 0.15, "polo": 0.15, "top": 0.3}
+    )
     lower: dict[str, float] = field(default_factory=lambda: {"trousers": 0.5, "skirt": 0.5})
     full: dict[str, float] = field(default_factory=lambda: {"jumpsuit": 0.5, "dress": 0.5})
     # Skirts and dresses for male subjects too? CLOTH3D's male outfits had none.
     male_skirts: bool = False
-    fabrics: dict[str, float] = field(
-        default_factory=lambda: {name: 1.0 for name in FABRICS})
+    fabrics: dict[str, float] = field(default_factory=lambda: {name: 1.0 for name in FABRICS})
     upper_fabrics: dict[str, float] = field(
-        default_factory=lambda: {name: 1.0 for name in UPPER_FABRICS})
+        default_factory=lambda: {name: 1.0 for name in UPPER_FABRICS}
+    )
     elastic_probability: float = 0.5
     tightness: tuple[tuple[float, float], tuple[float, float]] = ((-1.5, 0.5), (-1.5, 0.5))
     randomize_shape: bool = True
@@ -70,15 +74,17 @@ class OutfitConfig:
         ):
             for name, weight in table.items():
                 if name not in allowed:
-                    raise InputError(source, f"{path}.{key}.{name}",
-                                     f"one of {', '.join(allowed)}", name)
+                    raise InputError(
+                        source, f"{path}.{key}.{name}", f"one of {', '.join(allowed)}", name
+                    )
                 check_range(weight, 0.0, None, source, f"{path}.{key}.{name}")
             if table and sum(table.values()) <= 0:
                 raise InputError(source, f"{path}.{key}", "at least one positive weight", table)
         for k, (lo, hi) in enumerate(self.tightness):
             if not (-3.0 <= lo <= hi <= 3.0):
-                raise InputError(source, f"{path}.tightness[{k}]", "[low, high] within [-3, 3]",
-                                 [lo, hi])
+                raise InputError(
+                    source, f"{path}.tightness[{k}]", "[low, high] within [-3, 3]", [lo, hi]
+                )
 
 
 def outfit_config(loaded) -> OutfitConfig:
@@ -105,22 +111,57 @@ def _template(templates_dir: str, gender: str, name: str):
     return load_template(path)
 
 
-def _part_spec(rng, cfg: OutfitConfig, templates_dir: str, gender: str, name: str,
-               template: str, variant: str, fabric: str, layer: int,
-               elastic_roles: tuple[str, ...]) -> GarmentSpec:
+def _part_spec(
+    rng,
+    cfg: OutfitConfig,
+    templates_dir: str,
+    gender: str,
+    name: str,
+    template: str,
+    variant: str,
+    fabric: str,
+    layer: int,
+    elastic_roles: tuple[str, ...],
+    keep_torso: bool = False,
+) -> GarmentSpec:
     from datagen.garment.cutting import sample_cuts
     from datagen.garment.shaping import sample_shaping
 
     t = _template(templates_dir, gender, template)
     shaping = sample_shaping(rng, t) if cfg.randomize_shape else {}
     cuts = sample_cuts(rng, t, variant) if cfg.randomize_cuts else {}
+    if keep_torso:
+        # The bodice of a jumpsuit or dress is trimmed to the waist when it is sewn on; a hem cut
+        # first could end above the waist.
+        cuts.pop("torso", None)
     elastic = {role: bool(rng.random() < cfg.elastic_probability) for role in elastic_roles}
     return GarmentSpec(
-        name=name, template=template, variant=variant, fabric=fabric,
-        shaping={k: _r(v) for k, v in sorted(shaping.items())},
+        name=name,
+        template=template,
+        variant=variant,
+        fabric=fabric,
+        shaping=flatten_shaping(shaping),
         cuts={k: _r(v) for k, v in sorted(cuts.items())},
-        elastic=elastic, layer=layer,
+        elastic=elastic,
+        layer=layer,
     )
+
+
+def flatten_shaping(shaping: dict[str, dict[str, float]]) -> dict[str, float]:
+    """Shaping parameters per axis as flat "axis.parameter" keys (the scene spec holds floats)."""
+    return {
+        f"{axis}.{name}": _r(value)
+        for axis, params in sorted(shaping.items())
+        for name, value in sorted(params.items())
+    }
+
+
+def unflatten_shaping(flat: dict[str, float]) -> dict[str, dict[str, float]]:
+    out: dict[str, dict[str, float]] = {}
+    for key, value in flat.items():
+        axis, _, name = key.partition(".")
+        out.setdefault(axis, {})[name] = float(value)
+    return out
 
 
 def sample_outfit(loaded, rng: np.random.Generator, subject: SubjectSpec) -> OutfitSpec:
@@ -139,21 +180,53 @@ def sample_outfit(loaded, rng: np.random.Generator, subject: SubjectSpec) -> Out
     if full:
         kind = _choose(rng, full_weights)
         fabric = _choose(rng, cfg.fabrics)
-        upper = _part_spec(rng, cfg, templates_dir, gender, kind, "top", "top", fabric, 0, ())
+        upper = _part_spec(
+            rng, cfg, templates_dir, gender, kind, "top", "top", fabric, 0, (), keep_torso=True
+        )
         lower_roles = ELASTIC_ROLES[2:] if kind == "jumpsuit" else ()
-        lower = _part_spec(rng, cfg, templates_dir, gender, kind, FULL_BODY[kind],
-                           FULL_BODY[kind], fabric, 0, lower_roles)
+        lower = _part_spec(
+            rng,
+            cfg,
+            templates_dir,
+            gender,
+            kind,
+            FULL_BODY[kind],
+            FULL_BODY[kind],
+            fabric,
+            0,
+            lower_roles,
+        )
         waist = {"waist": bool(rng.random() < cfg.elastic_probability)}
         lower = GarmentSpec(**{**lower.__dict__, "elastic": {**lower.elastic, **waist}})
         return OutfitSpec(garments=(upper, lower), tightness=tight, sewn=kind)
     variant = _choose(rng, cfg.upper)
     upper_roles = ELASTIC_ROLES[:2] if UPPER_TEMPLATES[variant] == "tshirt" else ()
-    upper = _part_spec(rng, cfg, templates_dir, gender, "upper", UPPER_TEMPLATES[variant],
-                       variant, _choose(rng, cfg.upper_fabrics), 1, upper_roles)
+    upper = _part_spec(
+        rng,
+        cfg,
+        templates_dir,
+        gender,
+        "upper",
+        UPPER_TEMPLATES[variant],
+        variant,
+        _choose(rng, cfg.upper_fabrics),
+        1,
+        upper_roles,
+    )
     lower_t = _choose(rng, lower_weights)
     lower_roles = ELASTIC_ROLES[2:] if lower_t == "trousers" else ()
-    lower = _part_spec(rng, cfg, templates_dir, gender, "lower", lower_t, lower_t,
-                       _choose(rng, cfg.fabrics), 0, lower_roles)
+    lower = _part_spec(
+        rng,
+        cfg,
+        templates_dir,
+        gender,
+        "lower",
+        lower_t,
+        lower_t,
+        _choose(rng, cfg.fabrics),
+        0,
+        lower_roles,
+    )
     return OutfitSpec(garments=(upper, lower), tightness=tight, sewn=None)
 
 
@@ -171,12 +244,15 @@ def dropped_parts_for(outfit: OutfitSpec) -> frozenset[str]:
     """Body parts this outfit never reaches, left out of the cloth collider (design 4.1): the
     forearms, unless a sleeve reaches past the elbow."""
     long_sleeves = any(
-        g.template == "tshirt" and g.cuts.get("sleeve", 1.0) > 0.35 for g in outfit.garments)
+        g.template == "tshirt" and g.cuts.get("sleeve_l", np.inf) > FOREARM_SLEEVE
+        for g in outfit.garments
+    )
     return frozenset() if long_sleeves else frozenset({"forearm_l", "forearm_r"})
 
 
-def make_outfit(outfit: OutfitSpec, subject: RestBody, body_model,
-                templates_dir: str | Path | None = None) -> list[Garment]:
+def make_outfit(
+    outfit: OutfitSpec, subject: RestBody, body_model, templates_dir: str | Path | None = None
+) -> list[Garment]:
     """The garments of an outfit spec, shaped, cut, sewn and resized to the subject's rest body
     (T-pose, as the body model gives it)."""
     from datagen.body.anny_model import NEUTRAL_SHAPE
@@ -191,32 +267,45 @@ def make_outfit(outfit: OutfitSpec, subject: RestBody, body_model,
     parts = []
     for g in outfit.garments:
         t = _template(templates_dir, gender, g.template)
-        t = shape(t, dict(g.shaping)) if g.shaping else t
+        t = shape(t, unflatten_shaping(g.shaping)) if g.shaping else t
         t = cut(t, dict(g.cuts), g.variant) if (g.cuts or g.variant != g.template) else t
         parts.append((g, t))
     if outfit.sewn:
         (gu, tu), (gl, tl) = parts
         sewn_t = sew(tu, tl, outfit.sewn)
-        spec = GarmentSpec(name=outfit.sewn, template=outfit.sewn, variant=outfit.sewn,
-                           fabric=gl.fabric, elastic={**gu.elastic, **gl.elastic}, layer=0)
+        spec = GarmentSpec(
+            name=outfit.sewn,
+            template=outfit.sewn,
+            variant=outfit.sewn,
+            fabric=gl.fabric,
+            elastic={**gu.elastic, **gl.elastic},
+            layer=0,
+        )
         parts = [(spec, sewn_t)]
     template_body = body_model.rest_body(gender, NEUTRAL_SHAPE)
     garment_body = body_model.rest_body(
-        gender, garment_body_shape(subject.shape, subject.shape_names, outfit.tightness),
-        extrapolate=True)
+        gender,
+        garment_body_shape(subject.shape, subject.shape_names, outfit.tightness),
+        extrapolate=True,
+    )
     garments = []
     for spec, t in parts:
         start, rest = resize(t.vertices, t.faces, template_body, subject, garment_body)
         garment = to_garment(t, spec.fabric, spec.name)
         garment.vertices = start
         garment.rest_vertices = rest
-        garment.elastic = tuple(r for r, on in sorted(spec.elastic.items())
-                                if on and r in garment.loops)
+        garment.elastic = tuple(
+            r for r, on in sorted(spec.elastic.items()) if on and r in garment.loops
+        )
         garment.tightness = tuple(outfit.tightness)
         garment.layer = spec.layer
         if spec.template in LOWER_TEMPLATES and not outfit.sewn and "waist" in garment.loops:
             garment.pinned = np.asarray(garment.loops["waist"])
-        garment.meta = {"template": spec.template, "variant": spec.variant,
-                        "shaping": dict(spec.shaping), "cuts": dict(spec.cuts)}
+        garment.meta = {
+            "template": spec.template,
+            "variant": spec.variant,
+            "shaping": dict(spec.shaping),
+            "cuts": dict(spec.cuts),
+        }
         garments.append(garment)
     return garments

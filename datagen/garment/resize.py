@@ -34,8 +34,9 @@ SMOOTHING_WEIGHT = 0.5
 NEIGHBOURS = 8  # body vertices averaged per garment vertex
 
 
-def garment_body_shape(shape: np.ndarray, names: tuple[str, ...],
-                       tightness: tuple[float, float]) -> np.ndarray:
+def garment_body_shape(
+    shape: np.ndarray, names: tuple[str, ...], tightness: tuple[float, float]
+) -> np.ndarray:
     """The shape the garment is made for: tightness offsets on the size and girth parameters."""
     out = np.array(shape, dtype=np.float64, copy=True)
     out[names.index(SIZE_PARAMETER)] -= TIGHTNESS_SCALE * tightness[0]
@@ -55,8 +56,9 @@ def vertex_neighbours(n_vertices: int, faces: np.ndarray) -> tuple[np.ndarray, n
     return np.cumsum(ptr), both[:, 1]
 
 
-def laplacian_smooth(values: np.ndarray, faces: np.ndarray, iterations: int,
-                     weight: float) -> np.ndarray:
+def laplacian_smooth(
+    values: np.ndarray, faces: np.ndarray, iterations: int, weight: float
+) -> np.ndarray:
     """Iterative umbrella smoothing of a per-vertex field (V, k) over the mesh."""
     ptr, idx = vertex_neighbours(len(values), faces)
     counts = np.diff(ptr)
@@ -70,8 +72,9 @@ def laplacian_smooth(values: np.ndarray, faces: np.ndarray, iterations: int,
     return out
 
 
-def transfer_displacement(garment: np.ndarray, faces: np.ndarray, source_body: np.ndarray,
-                          target_body: np.ndarray) -> np.ndarray:
+def transfer_displacement(
+    garment: np.ndarray, faces: np.ndarray, source_body: np.ndarray, target_body: np.ndarray
+) -> np.ndarray:
     """Per garment vertex, the smoothed displacement of its nearest body points."""
     tree = cKDTree(source_body)
     dist, idx = tree.query(garment, k=NEIGHBOURS)
@@ -95,8 +98,13 @@ def body_signed_distance(points: np.ndarray, body: RestBody) -> tuple[np.ndarray
     return sign * dist, normals
 
 
-def push_out(vertices: np.ndarray, faces: np.ndarray, body: RestBody,
-             clearance: float = CLEARANCE, rounds: int = 6) -> np.ndarray:
+def push_out(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    body: RestBody,
+    clearance: float = CLEARANCE,
+    rounds: int = 6,
+) -> np.ndarray:
     """Move vertices closer than `clearance` to the body (or inside it) outward along the body
     normal, spreading the move smoothly so the surface keeps its shape."""
     out = np.array(vertices, dtype=np.float64, copy=True)
@@ -115,14 +123,21 @@ def push_out(vertices: np.ndarray, faces: np.ndarray, body: RestBody,
     return out
 
 
-def resize(template_vertices: np.ndarray, faces: np.ndarray, template_body: RestBody,
-           subject: RestBody, garment_body: RestBody) -> tuple[np.ndarray, np.ndarray]:
+def resize(
+    template_vertices: np.ndarray,
+    faces: np.ndarray,
+    template_body: RestBody,
+    subject: RestBody,
+    garment_body: RestBody,
+) -> tuple[np.ndarray, np.ndarray]:
     """(starting positions, rest shape) of a template garment resized to `subject`, made for
     `garment_body` (the subject with the tightness offsets)."""
     src = template_body.vertices
-    start = template_vertices + transfer_displacement(template_vertices, faces, src,
-                                                      subject.vertices)
-    rest = template_vertices + transfer_displacement(template_vertices, faces, src,
-                                                     garment_body.vertices)
+    start = template_vertices + transfer_displacement(
+        template_vertices, faces, src, subject.vertices
+    )
+    rest = template_vertices + transfer_displacement(
+        template_vertices, faces, src, garment_body.vertices
+    )
     start = push_out(start, faces, subject)
     return start, rest

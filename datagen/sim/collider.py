@@ -76,6 +76,12 @@ class BodyCollider:
         v0 = np.asarray(v0, dtype=NP_REAL)
         v1 = np.asarray(v1, dtype=NP_REAL)
         prev = getattr(self, "v1_np", None)
+        if (
+            getattr(self, "_at_rest", False)
+            and np.array_equal(prev, v0)
+            and np.array_equal(v0, v1)
+        ):
+            return  # a collider at rest: the arrays and the grid of the last frame still hold
         if prev is not None and prev.shape == v0.shape and np.array_equal(prev, v0):
             self.b0, self.b1 = self.b1, self.b0
             self.n0, self.n1 = self.n1, self.n0
@@ -83,6 +89,7 @@ class BodyCollider:
             self.b0.from_numpy(v0)
             self.n0.from_numpy(vertex_normals(v0, self.faces_np) if nrm0 is None else nrm0)
         self.v0_np, self.v1_np = v0, v1
+        self._at_rest = bool(np.array_equal(v0, v1))
         if np.array_equal(v0, v1):
             self.b1.copy_from(self.b0)
             self.n1.copy_from(self.n0)

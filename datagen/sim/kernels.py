@@ -484,6 +484,10 @@ def collide_one(
     t = tri[i]
     if w[i] > 0.0 and t >= 0:
         p = x[i]
+        a = vec3(0.0)
+        b = vec3(0.0)
+        c = vec3(0.0)
+        inside = False
         for _ in range(8):
             f = faces[t]
             a = lerp3(b0[f[0]], b1[f[0]], s1)
@@ -495,6 +499,7 @@ def collide_one(
                 m = 1
             if bc[2] < bc[m]:
                 m = 2
+            inside = bc[m] >= 0.0
             nxt = -1
             # A small tolerance stops the walk from circling a vertex whose neighbourhood no
             # triangle plane contains the projection of; the clamped closest point is right.
@@ -504,50 +509,93 @@ def collide_one(
                 break
             t = nxt
         tri[i] = t
-        f = faces[t]
-        a = lerp3(b0[f[0]], b1[f[0]], s1)
-        b = lerp3(b0[f[1]], b1[f[1]], s1)
-        c = lerp3(b0[f[2]], b1[f[2]], s1)
-        r = closest_on_triangle(p, a, b, c)
-        if r[3] > release * release:
-            tri[i] = -1  # far from the body now: the grid search picks it up again
-        q = r[0] * a + r[1] * b + r[2] * c
-        nrm = (
-            r[0] * lerp3(n0[f[0]], n1[f[0]], s1)
-            + r[1] * lerp3(n0[f[1]], n1[f[1]], s1)
-            + r[2] * lerp3(n0[f[2]], n1[f[2]], s1)
+        # Most tracked vertices hover clear of the body: when the projection falls inside the
+        # triangle, the distance to its plane is the distance to the triangle, and a vertex
+        # well beyond the thickness needs neither the closest point nor the contact response.
+        nf = (b - a).cross(c - a)
+        nfl = nf.norm()
+        far = False
+        if inside and nfl > 1e-20:
+            height = (p - a).dot(nf) / nfl
+            far = height > 2.0 * thickness[i] + 1e-3
+            if height > release:
+                tri[i] = -1  # far from the body now: the grid search picks it up again
+        if not far:
+            _collide_tracked(i, x, xp, faces, b0, b1, n0, n1, s0, s1, thickness, friction,
+                             recover, release, contact_n, contact_v, h, tri, t, p, a, b, c,
+                             use_friction)
+
+
+@ti.func
+def _collide_tracked(
+    i: ti.i32,
+    x: V3,
+    xp: V3,
+    faces: I3,
+    b0: V3,
+    b1: V3,
+    n0: V3,
+    n1: V3,
+    s0: REAL,
+    s1: REAL,
+    thickness: F1,
+    friction: F1,
+    recover: REAL,
+    release: REAL,
+    contact_n: V3,
+    contact_v: V3,
+    h: REAL,
+    tri: I1,
+    t: ti.i32,
+    p: vec3,
+    a: vec3,
+    b: vec3,
+    c: vec3,
+    use_friction: ti.template(),
+):
+    """The contact response of cloth vertex i against its tracked triangle t (corners a, b, c
+    at the substep's end)."""
+    f = faces[t]
+    r = closest_on_triangle(p, a, b, c)
+    if r[3] > release * release:
+        tri[i] = -1  # far from the body now: the grid search picks it up again
+    q = r[0] * a + r[1] * b + r[2] * c
+    nrm = (
+        r[0] * lerp3(n0[f[0]], n1[f[0]], s1)
+        + r[1] * lerp3(n0[f[1]], n1[f[1]], s1)
+        + r[2] * lerp3(n0[f[2]], n1[f[2]], s1)
+    )
+    nl = nrm.norm()
+    if nl > 1e-12:
+        nrm /= nl
+        sd = (p - q).dot(nrm)
+        thick = thickness[i]
+        qa = (
+            r[0] * lerp3(b0[f[0]], b1[f[0]], s0)
+            + r[1] * lerp3(b0[f[1]], b1[f[1]], s0)
+            + r[2] * lerp3(b0[f[2]], b1[f[2]], s0)
         )
-        nl = nrm.norm()
-        if nl > 1e-12:
-            nrm /= nl
-            sd = (p - q).dot(nrm)
-            thick = thickness[i]
-            qa = (
-                r[0] * lerp3(b0[f[0]], b1[f[0]], s0)
-                + r[1] * lerp3(b0[f[1]], b1[f[1]], s0)
-                + r[2] * lerp3(b0[f[2]], b1[f[2]], s0)
-            )
-            # A vertex that was outside at the start of the substep is projected fully (a new
-            # contact); one that was already inside (a garment that starts in the body)
-            # recovers gradually so it does not shoot out.
-            target = thick
-            sd_prev = (xp[i] - qa).dot(nrm)
-            if sd_prev < 0.0:
-                target = ti.min(thick, sd_prev + recover)
-            if sd < target:
-                dq = q - qa
-                push = target - sd
-                p += push * nrm
-                if ti.static(use_friction):
-                    rel = (p - xp[i]) - dq
-                    tang = rel - rel.dot(nrm) * nrm
-                    lt = tang.norm()
-                    limit = friction[i] * push
-                    if lt > 1e-12:
-                        p -= tang * ti.min(1.0, limit / lt)
-                x[i] = p
-                contact_n[i] = nrm
-                contact_v[i] = dq / h
+        # A vertex that was outside at the start of the substep is projected fully (a new
+        # contact); one that was already inside (a garment that starts in the body)
+        # recovers gradually so it does not shoot out.
+        target = thick
+        sd_prev = (xp[i] - qa).dot(nrm)
+        if sd_prev < 0.0:
+            target = ti.min(thick, sd_prev + recover)
+        if sd < target:
+            dq = q - qa
+            push = target - sd
+            p += push * nrm
+            if ti.static(use_friction):
+                rel = (p - xp[i]) - dq
+                tang = rel - rel.dot(nrm) * nrm
+                lt = tang.norm()
+                limit = friction[i] * push
+                if lt > 1e-12:
+                    p -= tang * ti.min(1.0, limit / lt)
+            x[i] = p
+            contact_n[i] = nrm
+            contact_v[i] = dq / h
 
 
 @ti.kernel
