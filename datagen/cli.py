@@ -405,12 +405,13 @@ def inspect(path, as_json) -> None:
 
 
 def _register_subcommands() -> None:
-    from datagen.garment.commands import templates
+    from datagen.garment.commands import garments, templates
     from datagen.io.commands import COMMANDS
 
     for command in COMMANDS:
         main.add_command(command)
     main.add_command(templates)
+    main.add_command(garments)
 
 
 _register_subcommands()

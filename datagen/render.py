@@ -39,13 +39,22 @@ def _frame_bounds(layers_per_frame: list[list[MeshLayer]]) -> tuple[np.ndarray, 
     return pts.min(axis=0), pts.max(axis=0)
 
 
+def _framing(lo: np.ndarray, hi: np.ndarray, height: int, width: int) -> float:
+    """Pixels per metre that fit a box of corners lo, hi in every view's panel."""
+    extent = (hi - lo) * 1.08 + 1e-6
+    across = max(extent[0], extent[1])  # the front view shows x, the side view y
+    return float(min(height / extent[2], width / across))
+
+
 def render_views(
     layers: list[MeshLayer],
     views: tuple[str, ...] = ("front", "side"),
     height: int = 480,
     bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    scale: float | None = None,
 ) -> np.ndarray:
-    """An RGB uint8 image with the views side by side."""
+    """An RGB uint8 image with the views side by side, framed on `bounds` (default: the layers'
+    own box); `scale` (pixels per metre) fixes the zoom across the frames of a sequence."""
     import taichi as ti
 
     from datagen import render_kernels as RK
@@ -54,9 +63,9 @@ def render_views(
     init_taichi()
     lo, hi = bounds if bounds is not None else _frame_bounds([layers])
     centre = (lo + hi) / 2
-    span = float(np.max(hi - lo)) * 1.08 + 1e-6
-    scale = height / span
     width = height * 3 // 4
+    if scale is None:
+        scale = _framing(lo, hi, height, width)
     panels = []
     for view in views:
         right, up, towards = VIEWS[view]
@@ -100,9 +109,20 @@ def save_gif(path: str | Path, images: list[np.ndarray], fps: float) -> None:
 def render_sequence(
     frames: list[list[MeshLayer]], height: int = 360, views: tuple[str, ...] = ("front", "side")
 ) -> list[np.ndarray]:
-    """Images of every frame with one camera framing for the whole sequence (no jitter)."""
-    bounds = _frame_bounds(frames)
-    return [render_views(layers, views, height, bounds) for layers in frames]
+    """Images of every frame at one zoom; the camera follows the subject across the floor (a
+    walk stays in the picture) but not up and down (a jump is seen as one)."""
+    boxes = [_frame_bounds([layers]) for layers in frames]
+    lo_all, hi_all = _frame_bounds(frames)
+    width = height * 3 // 4
+    largest = np.max([hi - lo for lo, hi in boxes], axis=0)
+    scale = _framing(np.zeros(3), np.append(largest[:2], hi_all[2] - lo_all[2]), height, width)
+    images = []
+    for layers, (lo, hi) in zip(frames, boxes, strict=True):
+        mid = (lo + hi) / 2
+        box_lo = np.array([mid[0], mid[1], lo_all[2]])
+        box_hi = np.array([mid[0], mid[1], hi_all[2]])
+        images.append(render_views(layers, views, height, (box_lo, box_hi), scale))
+    return images
 
 
 def preview_record(path: str | Path, record, every: int = 2, height: int = 320) -> None:

@@ -41,9 +41,9 @@ from datagen.types import RestBody
 
 TEMPLATE_NAMES = ("tshirt", "top", "trousers", "skirt")
 GENDERS = ("female", "male")
-# Edge length of the shipped templates: about 5-6k vertices per garment, so a two-piece outfit
-# is near 10k vertices (the simulator's speed target) and CLOTH3D-like in density.
-SHIPPED_RESOLUTION = 0.015
+# Edge length of the shipped templates (about 1 cm, as CLOTH3D's garments): 6-14k vertices per
+# garment. `datagen templates build --resolution` makes coarser or finer sets.
+SHIPPED_RESOLUTION = 0.01
 ROW_FACTOR = 0.87  # row spacing / resolution: near-equilateral triangles between rows
 MIN_BUILD_CLEARANCE = 0.008  # m: vertices are pushed out to this (the check demands 5 mm)
 MIN_SHAPED_CLEARANCE = 0.007  # m: shaping never narrows a row below this clearance

@@ -330,7 +330,7 @@ class _Simulation:
             retry = self.solvers[sub]
             retry.set_state(x0, v0)
             retry.tri.from_numpy(tri0)
-            reason = self._frame(retry, f0, f1, True)
+            reason = self._frame(retry, f0, f1, False)
             if reason is None:
                 x, v = retry.get_state()
                 solver.set_state(x, v)
