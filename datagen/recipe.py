@@ -79,9 +79,11 @@ class BodyConfig:
     repair_gap: float = 0.004  # thesis 3.3.1: 4 mm so that a folded cloth fits
     max_solvable_extent: float = 0.30  # metres: larger intersections are not "small"
     max_solvable_depth: float = 0.03
-    drop_unreached_parts: bool = True  # forearms the outfit never reaches leave the collider
-    # Parts no garment covers: never in the cloth collider, so their contacts do not matter.
-    never_collide: list[str] = field(
+    drop_unreached_parts: bool = True  # parts the outfit never reaches leave the collider
+    # Parts whose contacts with other parts are neither repaired nor a reason to reject (a hand
+    # resting on a thigh is a pose, not an error); they stay in the cloth collider only when the
+    # outfit reaches them (long sleeves reach the hands, long trouser legs the feet).
+    unrepaired_parts: list[str] = field(
         default_factory=lambda: ["hand_l", "hand_r", "foot_l", "foot_r", "head"]
     )
     arm_clearance: bool = True  # abduct arms that would sit inside a broad subject's torso
@@ -94,10 +96,13 @@ class BodyConfig:
         check_range(self.thinner_retries, 0, 5, source, f"{path}.thinner_retries")
         from datagen.body.parts import PART_NAMES
 
-        for name in self.never_collide:
+        for name in self.unrepaired_parts:
             if name not in PART_NAMES:
                 raise InputError(
-                    source, f"{path}.never_collide", f"body parts ({', '.join(PART_NAMES)})", name
+                    source,
+                    f"{path}.unrepaired_parts",
+                    f"body parts ({', '.join(PART_NAMES)})",
+                    name,
                 )
 
 

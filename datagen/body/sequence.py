@@ -113,7 +113,7 @@ def build_body_sequence(
     lead_in: int,
     model: BodyModel,
     config: BodyConfig,
-    dropped_parts: frozenset[str] = frozenset(),
+    dropped_parts: frozenset[str] = frozenset({"head"}),
 ) -> BodySequence:
     """Pose the subject through `motion` (reference skeleton, no lead-in yet), add the lead-in
     from rest, and repair or reject body self-collisions. Retries with a thinner body when the
@@ -121,7 +121,10 @@ def build_body_sequence(
     unknown = [p for p in dropped_parts if p not in PART_INDEX]
     if unknown:
         raise InputError(None, "dropped_parts", "body part names", unknown)
-    dropped_parts = frozenset(dropped_parts) | frozenset(config.never_collide)
+    # The cloth collider leaves out what the outfit never reaches; self-contact repair also
+    # ignores the parts whose contacts are poses rather than errors.
+    collider_dropped = frozenset(dropped_parts)
+    dropped_parts = collider_dropped | frozenset(config.unrepaired_parts)
     shape = shape_vector(model, subject)
     last_error: RejectedSequence | None = None
     for attempt in range(config.thinner_retries + 1):
@@ -153,7 +156,7 @@ def build_body_sequence(
         report.arm_clearance_frames = int(np.count_nonzero(added.max(axis=0) > 0))
         report.thinner_retries = attempt
         part_of_face = rest.part_labels[rest.faces[:, 0]]
-        dropped_ids = [PART_INDEX[p] for p in dropped_parts]
+        dropped_ids = [PART_INDEX[p] for p in collider_dropped]
         return BodySequence(
             rest=rest,
             poses=poses,

@@ -31,9 +31,6 @@ LOWER_TEMPLATES = ("trousers", "skirt")
 FULL_BODY = {"jumpsuit": "trousers", "dress": "skirt"}  # sewn from a top and this
 FABRICS = ("cotton", "silk", "denim", "leather")
 UPPER_FABRICS = ("cotton", "silk")
-# Sleeve cut (metres along the sleeve axis from the armhole) beyond which the forearm, bending at
-# the elbow (about 0.25 m out), can reach the sleeve: the collider then keeps the forearms.
-FOREARM_SLEEVE = 0.18
 ELASTIC_ROLES = ("sleeve_l_end", "sleeve_r_end", "leg_l_end", "leg_r_end")
 
 
@@ -241,13 +238,11 @@ def resolve_templates_dir(templates: str, base_dir: Path | None) -> Path:
 
 # -- assembly ----------------------------------------------------------------------------------
 def dropped_parts_for(outfit: OutfitSpec) -> frozenset[str]:
-    """Body parts this outfit never reaches, left out of the cloth collider (design 4.1): the
-    forearms, unless a sleeve reaches past the elbow."""
-    long_sleeves = any(
-        g.template == "tshirt" and g.cuts.get("sleeve_l", np.inf) > FOREARM_SLEEVE
-        for g in outfit.garments
-    )
-    return frozenset() if long_sleeves else frozenset({"forearm_l", "forearm_r"})
+    """Body parts this outfit never reaches, left out of the cloth collider (design 4.1). Only
+    the head: arms hanging by the sides brush skirts and trousers whatever the sleeves, long
+    sleeves reach the hands and long legs the feet, so the rest of the body stays."""
+    del outfit  # every outfit reaches the same parts today
+    return frozenset({"head"})
 
 
 def make_outfit(

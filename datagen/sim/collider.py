@@ -9,7 +9,7 @@ import taichi as ti
 
 from datagen.sim import kernels as K
 from datagen.sim.backend import init_taichi
-from datagen.sim.precision import NP_REAL, REAL, VEC3
+from datagen.sim.precision import NP_REAL, REAL, VEC3, VEC4
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -64,6 +64,10 @@ class BodyCollider:
         self.b1 = ti.ndarray(VEC3, n_vertices)
         self.n0 = ti.ndarray(VEC3, n_vertices)
         self.n1 = ti.ndarray(VEC3, n_vertices)
+        # Scratch: the body interpolated to a substep's start and end (fused solver kernels).
+        self.bs0 = ti.ndarray(VEC3, n_vertices)
+        self.bs1 = ti.ndarray(VEC3, n_vertices)
+        self.ns1 = ti.ndarray(VEC3, n_vertices)
         self._n_cells_alloc = 0
         self.counts = self.starts = self.items = None
         self._items_alloc = 0
@@ -173,22 +177,25 @@ class BodyCollider:
                                      float(self.cell), self._sd_out)
         return self._sd_out.to_numpy().astype(np.float64)
 
-    def nearest(self, x, w, tri, s: float, only_untracked: bool = False, skip=None,
-                approach: float = 0.0) -> None:
+    def nearest(self, x, w, tri, s: float, only_untracked: bool = False, guard=None,
+                odo: float = 0.0) -> None:
         """Reset each cloth vertex's tracked triangle to the closest one within a grid cell
-        (or only find one for vertices that track none, skipping those that cannot be near)."""
-        if skip is None:
-            skip = self._scratch_skip(x.shape[0])
+        (or only find one for vertices that track none and may have come near: `guard` and
+        `odo` as in kernels.nearest_one)."""
+        if guard is None:
+            guard = self._scratch_guard(x.shape[0])
         K.grid_nearest(x, w, self.b0, self.b1, self.faces, self.origin, self.inv_cell,
                        self.dims, self.starts, self.items, float(s), float(self.cell), tri,
-                       int(only_untracked), skip, float(approach))
+                       int(only_untracked), guard, float(odo))
 
-    def _scratch_skip(self, n: int):
-        if getattr(self, "_skip_n", None) != n:
-            self._skip_n = n
-            self._skip = ti.ndarray(ti.i32, n)
-        self._skip.fill(0)
-        return self._skip
+    def _scratch_guard(self, n: int):
+        from datagen.sim.solvers import fresh_guards
+
+        if getattr(self, "_guard_n", None) != n:
+            self._guard_n = n
+            self._guard = ti.ndarray(VEC4, n)
+        self._guard.from_numpy(fresh_guards(n))
+        return self._guard
 
     @property
     def max_speed(self) -> float:

@@ -170,6 +170,12 @@ def clear_lambda(lam: F1, lam_b: V3):
         lam_b[b] = vec3(0.0)
 
 
+@ti.kernel
+def clear_vec3(a: V3):
+    for i in a:
+        a[i] = vec3(0.0)
+
+
 @ti.func
 def spring_delta(
     x: V3,
@@ -746,22 +752,22 @@ def nearest_one(
     max_dist: REAL,
     tri: I1,
     only_untracked: ti.i32,
-    skip: I1,
-    approach: REAL,
+    guard: V4,
+    odo: REAL,
 ):
     """The closest collider triangle to cloth vertex i within `max_dist` (else -1), at body
     positions interpolated at fraction s, searching the 27 grid cells around the vertex.
     With `only_untracked`, a vertex that already tracks a triangle keeps it, and one whose last
-    search found nothing skips the searches it cannot need: `skip[i]` counts the substeps in
-    which neither it nor the body (together at most `approach` metres per substep) can close
-    the distance it was known to be away."""
-    searched = False
-    if only_untracked == 0:
-        skip[i] = 0
-    if w[i] > 0.0 and only_untracked != 0 and tri[i] < 0 and skip[i] > 0:
-        skip[i] -= 1
-    elif w[i] > 0.0 and (only_untracked == 0 or tri[i] < 0):
-        searched = True
+    search found nothing is not searched again while it provably cannot be near: that search
+    showed no triangle within `max_dist`, and since then the vertex has moved |x - guard.xyz|
+    and the body at most |odo - guard.w| (`odo`: how far the body's fastest vertex has
+    travelled)."""
+    clear = False
+    if w[i] > 0.0 and only_untracked != 0 and tri[i] < 0:
+        g = guard[i]
+        moved = (x[i] - vec3(g[0], g[1], g[2])).norm() + ti.abs(odo - g[3])
+        clear = moved < 0.5 * max_dist
+    if w[i] > 0.0 and (only_untracked == 0 or tri[i] < 0) and not clear:
         p = x[i]
         cell = ti.cast(ti.floor((p - origin) * inv_cell), ti.i32)
         best = max_dist * max_dist
@@ -790,10 +796,8 @@ def nearest_one(
                         best = r[3]
                         best_t = t
         tri[i] = best_t
-        if best_t < 0 and approach > 0.0:
-            skip[i] = ti.min(ti.cast(0.8 * max_dist / approach, ti.i32), 64)
-    if searched and tri[i] >= 0:
-        skip[i] = 0
+        if best_t < 0:
+            guard[i] = VEC4(p[0], p[1], p[2], odo)
 
 
 @ti.kernel
@@ -812,8 +816,8 @@ def grid_nearest(
     max_dist: REAL,
     tri: I1,
     only_untracked: ti.i32,
-    skip: I1,
-    approach: REAL,
+    guard: V4,
+    odo: REAL,
 ):
     for i in x:
         nearest_one(
@@ -832,18 +836,18 @@ def grid_nearest(
             max_dist,
             tri,
             only_untracked,
-            skip,
-            approach,
+            guard,
+            odo,
         )
 
 
 # -- one launch per frame (CPU) ----------------------------------------------------------------
 # Scalars of the fused frame kernel, packed into two small arrays: a kernel takes at most 64
 # argument elements on the x64 backend, and the fused kernel needs every array of the solver.
-P_H, P_OMEGA, P_RECOVER, P_APPROACH, P_CELL, P_INV_CELL = range(6)
+P_H, P_OMEGA, P_RECOVER, P_ODO, P_CELL, P_INV_CELL = range(6)
 P_GRAVITY, P_WIND, P_ORIGIN, P_L_ORIGIN = 6, 9, 12, 15  # 3 values each
-P_S_INV_CELL, P_S_RADIUS, P_S_MIN_REST, P_L_INV_CELL, P_L_CELL = range(18, 23)
-P_SIZE = 23
+P_S_INV_CELL, P_S_RADIUS, P_S_MIN_REST, P_L_INV_CELL, P_L_CELL, P_TRAVEL = range(18, 24)
+P_SIZE = 24
 Q_N_SUB, Q_N_ITER, Q_SWEEP0, Q_N_SETS, Q_N_BENDS, Q_N_PINS, Q_S_MASK = range(7)
 Q_DIMS, Q_L_DIMS = 7, 10  # 3 values each
 Q_SIZE = 13
@@ -878,13 +882,16 @@ def xpbd_frame(
     b1: V3,
     n0: V3,
     n1: V3,
+    bs0: V3,
+    bs1: V3,
+    ns1: V3,
     thickness: F1,
     friction: F1,
     contact_n: V3,
     contact_v: V3,
     starts: I1,
     items: I1,
-    skip: I1,
+    guard: V4,
     s_owner: I1,
     s_rest: V3,
     s_counts: I1,
@@ -892,7 +899,7 @@ def xpbd_frame(
     s_items: I1,
     l_w: F1,
     l_tri: I1,
-    l_skip: I1,
+    l_guard: V4,
     l_faces: I3,
     l_fadj: I3,
     l_b: V3,
@@ -914,7 +921,8 @@ def xpbd_frame(
     h = P[P_H]
     omega = P[P_OMEGA]
     recover = P[P_RECOVER]
-    approach = P[P_APPROACH]
+    odo0 = P[P_ODO]
+    travel = P[P_TRAVEL]
     cell = P[P_CELL]
     inv_cell = P[P_INV_CELL]
     gravity = vec3(P[P_GRAVITY], P[P_GRAVITY + 1], P[P_GRAVITY + 2])
@@ -956,21 +964,29 @@ def xpbd_frame(
                     if reverse != 0:
                         e = hi - 1 - m
                     spring_gs_one(e, x, xp, w, springs, rest, comp_t, comp_c, beta, lam, h, omega)
-            for m in range(n_bends):
+            nb = n_bends  # bending: the first sweep only (see XPBDSolver.substep)
+            if it > 0:
+                nb = 0
+            for m in range(nb):
                 b = m
                 if reverse != 0:
-                    b = n_bends - 1 - m
+                    b = nb - 1 - m
                 bend_gs_one(b, x, xp, w, bends, kw, bcomp, bbeta, lam_b, h, omega)
         for p in range(n_pins):
             x[pin_idx[p]] = lerp3(pin_t0[p], pin_t1[p], s1)
         if ti.static(use_collision):
+            # The body at this substep's start and end, once, instead of per cloth vertex.
+            for j in range(b0.shape[0]):
+                bs0[j] = lerp3(b0[j], b1[j], s0)
+                bs1[j] = lerp3(b0[j], b1[j], s1)
+                ns1[j] = lerp3(n0[j], n1[j], s1)
             for i in range(n):
                 contact_n[i] = vec3(0.0)
                 contact_v[i] = vec3(0.0)
             for i in range(n):
                 nearest_one(
-                    i, x, w, b0, b1, faces, origin, inv_cell, dims, starts, items, s1, cell, tri, 1,
-                    skip, approach,
+                    i, x, w, bs1, bs1, faces, origin, inv_cell, dims, starts, items, 1.0, cell,
+                    tri, 1, guard, odo0 + s1 * travel,
                 )
             for i in range(n):
                 collide_one(
@@ -981,12 +997,12 @@ def xpbd_frame(
                     tri,
                     faces,
                     fadj,
-                    b0,
-                    b1,
-                    n0,
-                    n1,
-                    s0,
-                    s1,
+                    bs0,
+                    bs1,
+                    ns1,
+                    ns1,
+                    0.0,
+                    1.0,
                     thickness,
                     friction,
                     recover,
@@ -1001,7 +1017,7 @@ def xpbd_frame(
             for i in range(n):
                 nearest_one(
                     i, x, l_w, l_b, l_b, l_faces, l_origin, l_inv_cell, l_dims, l_starts, l_items,
-                    1.0, l_cell, l_tri, 1, l_skip, 10.0 * h,
+                    1.0, l_cell, l_tri, 1, l_guard, 0.0,
                 )
             for i in range(n):
                 collide_one(

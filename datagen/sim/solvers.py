@@ -42,6 +42,13 @@ class SolverSettings:
     cg_max_iterations: int = 200
 
 
+def fresh_guards(n: int) -> np.ndarray:
+    """Per-vertex search guards (position, odometer) that make the first search happen."""
+    g = np.zeros((n, 4), NP_REAL)
+    g[:, 3] = -1e30
+    return g
+
+
 def _nd(dtype, data: np.ndarray):
     arr = ti.ndarray(dtype, max(len(data), 1))
     if len(data):
@@ -88,7 +95,8 @@ class ClothSolver:
         self.thickness = _nd(REAL, model.thickness.astype(NP_REAL))
         self.friction = _nd(REAL, model.friction.astype(NP_REAL))
         self.tri = _nd(ti.i32, -np.ones(n, np.int32))
-        self.skip = _nd(ti.i32, np.zeros(n, np.int32))
+        self.guard = _nd(VEC4, fresh_guards(n))
+        self.odo = 0.0  # metres the body's fastest vertex has travelled (see nearest_one)
         self.contact_n = _nd(VEC3, np.zeros((n, 3), NP_REAL))
         self.contact_v = _nd(VEC3, np.zeros((n, 3), NP_REAL))
         self.gravity = VEC3(*settings.gravity)
@@ -171,7 +179,7 @@ class ClothSolver:
             layer_w[model.pinned if self.effects.pins else []] = 0.0
         self.layer_w = _nd(REAL, layer_w)
         self.layer_tri = _nd(ti.i32, -np.ones(self.n, np.int32))
-        self.layer_skip = _nd(ti.i32, np.zeros(self.n, np.int32))
+        self.layer_guard = _nd(VEC4, fresh_guards(self.n))
 
     def begin_frame(self) -> None:
         """Per-frame set-up: the inner garment's surface for the layer collisions."""
@@ -180,13 +188,13 @@ class ClothSolver:
             inner = x[self.inner_vertices]
             self.layer_collider.set_frames(inner, inner)
             self._run("garment_collision", self.layer_collider.nearest, self.x, self.layer_w,
-                      self.layer_tri, 1.0, False, self.layer_skip, 0.0)
+                      self.layer_tri, 1.0, False, self.layer_guard, 0.0)
 
     def _cloth_collisions(self, h: float) -> None:
         if self.use_layers:
             c = self.layer_collider
             self._run("garment_collision", c.nearest, self.x, self.layer_w, self.layer_tri, 1.0,
-                      True, self.layer_skip, 10.0 * h)
+                      True, self.layer_guard, 0.0)
             self._run("garment_collision", K.collide_body, self.x, self.xp, self.layer_w,
                       self.layer_tri, c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, 0.0, 1.0,
                       self.thickness, self.friction, self.settings.recover_speed * h,
@@ -230,7 +238,7 @@ class ClothSolver:
         # Vertices that track no triangle look for one at every substep (cheap: they are far
         # from the body, in empty cells), so fast limbs and falling cloth are caught in time.
         self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s1, True,
-                  self.skip, self._approach(collider, h))
+                  self.guard, self.odo + s1 * collider.max_speed)
         self._run(
             "body_collision",
             K.collide_body,
@@ -260,13 +268,7 @@ class ClothSolver:
         """Global closest-triangle search (once per frame, or when the body moves fast)."""
         if collider is not None and self.effects.body_collision:
             self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s, False,
-                      self.skip, 0.0)
-
-    def _approach(self, collider, h: float) -> float:
-        """How far a cloth vertex and the body can close in on each other in one substep: the
-        body's fastest vertex plus a generous cloth speed (metres)."""
-        fps_h = h * self.settings.substeps  # one frame, in seconds
-        return collider.max_speed * h / fps_h + 10.0 * h
+                      self.guard, self.odo + s * collider.max_speed)
 
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
         raise NotImplementedError
@@ -277,6 +279,8 @@ class ClothSolver:
         self.begin_frame()
         for k in range(n_sub):
             self.substep(h, collider, k / n_sub, (k + 1) / n_sub)
+        if collider is not None and self.effects.body_collision:
+            self.odo += collider.max_speed
 
 
 def _unelastic(model: ClothModel) -> ClothModel:
@@ -362,7 +366,9 @@ class XPBDSolver(ClothSolver):
         P[K.P_H] = h
         P[K.P_OMEGA] = self.settings.sor
         P[K.P_RECOVER] = self.settings.recover_speed * h
-        P[K.P_APPROACH] = self._approach(c, h) if use_collision else 0.0
+        travel = c.max_speed if use_collision else 0.0
+        P[K.P_ODO] = self.odo
+        P[K.P_TRAVEL] = travel
         P[K.P_CELL] = c.cell
         P[K.P_INV_CELL] = c.inv_cell
         P[K.P_GRAVITY : K.P_GRAVITY + 3] = self.settings.gravity
@@ -392,17 +398,18 @@ class XPBDSolver(ClothSolver):
             self.f_ranges,
             self.bends, self.kw, self.bcomp, self.bbeta, self.lam_b,
             self.pin_idx, self.pin_t0, self.pin_t1,
-            self.tri, c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1,
+            self.tri, c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, c.bs0, c.bs1, c.ns1,
             self.thickness, self.friction, self.contact_n, self.contact_v,
-            c.starts, c.items, self.skip,
+            c.starts, c.items, self.guard,
             self.s_owner, self.s_rest, self.s_counts, self.s_starts, self.s_items,
-            self.layer_w, self.layer_tri, self.layer_skip, lc.faces, lc.fadj, lc.b0, lc.n0,
+            self.layer_w, self.layer_tri, self.layer_guard, lc.faces, lc.fadj, lc.b0, lc.n0,
             lc.starts, lc.items,
             self.P, self.Q,
             e.gravity, e.air_drag or e.wind, use_collision, e.friction, self.use_layers,
             self.use_self,
         )  # fmt: skip
         self._sweep += n_sub * self.settings.iterations
+        self.odo += travel
         self.costs["fused_frame"] += time.perf_counter() - t
         self.launches["fused_frame"] += 1
 
@@ -421,6 +428,9 @@ class XPBDSolver(ClothSolver):
                 b1=v3,
                 n0=v3,
                 n1=v3,
+                bs0=v3,
+                bs1=v3,
+                ns1=v3,
                 origin=VEC3(0.0),
                 origin_np=np.zeros(3),
                 dims_np=np.ones(3, np.int32),
@@ -480,10 +490,13 @@ class XPBDSolver(ClothSolver):
         for s in self.sets.values():
             s.lam.fill(0.0)
         if self.n_bends:
-            self.lam_b.fill(0.0)
-        for _ in range(self.settings.iterations):
+            K.clear_vec3(self.lam_b)
+        for it in range(self.settings.iterations):
             reverse = self._sweep % 2
             self._sweep += 1
+            # Bending is soft: one sweep per substep converges it; the further iterations go to
+            # the stiff stretch and shear springs (as in the fused kernel).
+            bend = it == 0
             if self.gauss_seidel:
                 for name, s in self.sets.items():
                     self._run(
@@ -502,7 +515,7 @@ class XPBDSolver(ClothSolver):
                         reverse,
                         self.settings.sor,
                     )
-                if self.n_bends:
+                if self.n_bends and bend:
                     self._run(
                         "bending",
                         K.bends_gauss_seidel,
@@ -519,7 +532,7 @@ class XPBDSolver(ClothSolver):
                         self.settings.sor,
                     )
             else:
-                self._jacobi_iteration(h)
+                self._jacobi_iteration(h, bend)
         self._pins(s1)
         self._collide(collider, s0, s1, h)
         self._cloth_collisions(h)
@@ -535,7 +548,7 @@ class XPBDSolver(ClothSolver):
             h,
         )
 
-    def _jacobi_iteration(self, h: float) -> None:
+    def _jacobi_iteration(self, h: float, bend: bool) -> None:
         omega = self.settings.jacobi_omega
         for name, s in self.sets.items():
             self._run(
@@ -553,7 +566,8 @@ class XPBDSolver(ClothSolver):
                 s.out,
                 h,
             )
-        if self.n_bends:
+        bend = bend and self.n_bends > 0
+        if bend:
             self._run(
                 "bending",
                 K.bends_jacobi,
@@ -573,7 +587,7 @@ class XPBDSolver(ClothSolver):
             ptr, ref = self.jacobi[name]
             bptr, bref, bslot = (
                 self.jacobi_b
-                if (k == 0 and self.n_bends)
+                if (k == 0 and bend)
                 else (self.jacobi_empty[0], self.jacobi_empty[1], self.jacobi_empty[1])
             )
             self._run(

@@ -83,7 +83,7 @@ def _walking_body(action: str, frames: int, lead_in: int):
     subject = SubjectSpec(gender="female",
                           shape=dict(zip(SHAPE_NAMES, NEUTRAL_SHAPE.tolist(), strict=True)))
     return build_body_sequence(subject, generate(action, frames, FPS), lead_in,
-                               default_body_model(), BodyConfig())
+                               default_body_model(), BodyConfig(), frozenset({"head"}))
 
 
 def garment_on_body(name: str, template: str, action: str, fabric: str,
