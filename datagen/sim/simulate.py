@@ -25,7 +25,7 @@ from datagen.types import BodySequence, Garment, SimResult
 # Quality presets per solver: substeps per frame and iterations (docs/accuracy-vs-time.md says
 # where each sits on the measured accuracy/time front).
 QUALITY_PRESETS: dict[str, dict[str, tuple[int, int]]] = {
-    "xpbd": {"draft": (10, 1), "default": (20, 1), "reference": (200, 1)},
+    "xpbd": {"draft": (10, 2), "default": (20, 4), "reference": (40, 8)},
     "explicit": {"draft": (200, 1), "default": (400, 1), "reference": (2000, 1)},
     "implicit": {"draft": (2, 4), "default": (5, 10), "reference": (50, 20)},
 }
