@@ -33,7 +33,8 @@ def startup_seconds(cache_dir: str) -> float:
     return float(out.stdout.strip().splitlines()[-1])
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    del argv
     with tempfile.TemporaryDirectory() as cache:
         first = startup_seconds(cache)
         cached = startup_seconds(cache)

@@ -412,6 +412,9 @@ def _register_subcommands() -> None:
         main.add_command(command)
     main.add_command(templates)
     main.add_command(garments)
+    from datagen.study.commands import bench
+
+    main.add_command(bench)
 
 
 _register_subcommands()

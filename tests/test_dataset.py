@@ -44,7 +44,8 @@ def tiny_recipe(tmp_path: Path, n: int = 6) -> Path:
 
 
 def errors(path) -> list:
-    return [p for p in validate(path) if p.severity == "error"]
+    """Integrity errors (the draft preset's QA limits are not what these tests are about)."""
+    return [p for p in validate(path, qa="warning") if p.severity == "error"]
 
 
 def run_cli(*args, timeout=900) -> subprocess.CompletedProcess:

@@ -11,7 +11,7 @@ from datagen.body.base import BodyModel
 from datagen.body.parts import PART_INDEX
 from datagen.body.selfcollision import SelfCollisionDetector, classify, repair_contact
 from datagen.errors import InputError, RejectedSequence
-from datagen.motion.timing import add_lead_in, retarget_root
+from datagen.motion.timing import add_lead_in, check_root_speed, retarget_root
 from datagen.recipe import BodyConfig
 from datagen.spec import SubjectSpec
 from datagen.types import BodySequence, Motion, RestBody, SelfCollisionReport
@@ -118,6 +118,7 @@ def build_body_sequence(
     """Pose the subject through `motion` (reference skeleton, no lead-in yet), add the lead-in
     from rest, and repair or reject body self-collisions. Retries with a thinner body when the
     config allows it; the stored shape is the one actually used."""
+    check_root_speed(motion)
     unknown = [p for p in dropped_parts if p not in PART_INDEX]
     if unknown:
         raise InputError(None, "dropped_parts", "body part names", unknown)

@@ -120,6 +120,10 @@ def push_out(
         along = np.einsum("ij,ij->i", spread, normals)
         spread += np.maximum(need - along, 0.0)[:, None] * normals
         out += spread
+    # Smoothing can leave a vertex in a crease short of its need: move those straight out.
+    sd, normals = body_signed_distance(out, body)
+    short = np.maximum(clearance - sd, 0.0)
+    out += short[:, None] * normals
     return out
 
 

@@ -121,3 +121,28 @@ def retarget_root(motion: Motion, pelvis_height: float) -> Motion:
         source=motion.source,
         pelvis_height=pelvis_height,
     )
+
+
+# The fastest a person's pelvis moves (sprinters reach about 12 m/s); a faster frame-to-frame
+# step is a glitch in the capture (a dropped frame, a wrapped coordinate), not a motion.
+MAX_ROOT_SPEED = 12.0  # m/s
+
+
+def check_root_speed(motion: Motion, limit: float = MAX_ROOT_SPEED) -> None:
+    """Reject a motion whose root jumps faster than a body can move: the body and the cloth
+    would have to teleport. Raises RejectedSequence naming the frame and the speed."""
+    from datagen.errors import RejectedSequence
+
+    if motion.n_frames < 2:
+        return
+    step = np.linalg.norm(np.diff(motion.trans, axis=0), axis=1)
+    speed = step * motion.fps
+    worst = int(np.argmax(speed))
+    if speed[worst] > limit:
+        raise RejectedSequence(
+            "motion",
+            f"the root moves {step[worst]:.2f} m between frames {worst} and {worst + 1} "
+            f"({speed[worst]:.1f} m/s, over the {limit:g} m/s a body can move): a glitch in "
+            f"the motion ({motion.source})",
+            (worst, worst + 1),
+        )

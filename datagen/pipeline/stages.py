@@ -7,13 +7,14 @@ hand-off types of datagen.types.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from datagen.errors import RejectedSequence
 from datagen.recipe import BodyConfig
 from datagen.spec import SceneSpec
-from datagen.types import BodySequence, Garment, SimResult
+from datagen.types import BodySequence, Garment, Motion, SimResult
 
 
 @dataclass
@@ -53,9 +54,12 @@ def run_sequence(
     templates_dir: Path | None = None,
     simulate_cloth: bool = True,
     fabrics: dict | None = None,
+    motion_hook: Callable[[Motion], Motion] | None = None,
+    garment_hook: Callable[[list[Garment], BodySequence], list[Garment]] | None = None,
 ) -> SequenceRecord:
     """Run one sequence end to end. A RejectedSequence becomes a rejected record; any other
-    error propagates (it is a bug or bad input, not a property of the scene)."""
+    error propagates (it is a bug or bad input, not a property of the scene). The hooks alter
+    the motion or the fitted garments on their way (the hard cases inject faults with them)."""
     from datagen.body.sequence import build_body_sequence
     from datagen.garment.outfit import dropped_parts_for, make_outfit
     from datagen.motion.load import motion_from_spec
@@ -66,6 +70,8 @@ def run_sequence(
     try:
         t = time.perf_counter()
         motion = motion_from_spec(spec.motion, base_dir)
+        if motion_hook is not None:
+            motion = motion_hook(motion)
         dropped = dropped_parts_for(spec.outfit) if config.drop_unreached_parts else frozenset()
         record.body = build_body_sequence(spec.subject, motion, spec.motion.lead_in, body_model,
                                           config, dropped)
@@ -74,6 +80,8 @@ def run_sequence(
             t = time.perf_counter()
             record.garments = make_outfit(spec.outfit, record.body.rest, body_model,
                                           templates_dir)
+            if garment_hook is not None:
+                record.garments = garment_hook(record.garments, record.body)
             record.timings["outfit"] = time.perf_counter() - t
             if simulate_cloth:
                 t = time.perf_counter()

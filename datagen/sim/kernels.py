@@ -950,6 +950,10 @@ def xpbd_frame(
         s1 = (k + 1) / n_sub
         for i in range(n):
             predict_one(i, x, xp, v, w, drag, gravity, wind, h, use_gravity, use_air)
+        # Pinned vertices reach their targets before the constraints, which then pull the
+        # fabric after them (moved afterwards, they would leave the edges next to them stretched).
+        for p in range(n_pins):
+            x[pin_idx[p]] = lerp3(pin_t0[p], pin_t1[p], s1)
         for e in range(springs.shape[0]):
             lam[e] = 0.0
         for b in range(n_bends):
@@ -972,8 +976,6 @@ def xpbd_frame(
                 if reverse != 0:
                     b = nb - 1 - m
                 bend_gs_one(b, x, xp, w, bends, kw, bcomp, bbeta, lam_b, h, omega)
-        for p in range(n_pins):
-            x[pin_idx[p]] = lerp3(pin_t0[p], pin_t1[p], s1)
         if ti.static(use_collision):
             # The body at this substep's start and end, once, instead of per cloth vertex.
             for j in range(b0.shape[0]):

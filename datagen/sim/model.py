@@ -12,6 +12,12 @@ Resolution independence (docs/fabrics.md):
   geometry of the two triangles (|sum K x| = theta |e| for a small fold theta); B is the bending
   rigidity in N m, and the energy of a sheet rolled to radius R tends to B * area / (2 R^2) at
   any resolution and triangulation (tests/test_sim_model.py checks it).
+
+Degenerate elements (zero-length edges, needle or zero-area triangles, duplicated vertices in a
+user's template) must not make the system infinitely stiff or a vertex massless: stiffness and
+mass use floors relative to the garment's median edge (`DEGENERATE_FRACTION`), hinges whose
+triangles are needles carry no bending, and the QA measures strain against the floored length.
+The data is not changed; the model counts what it floored (`ClothModel.degenerate`).
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from datagen.errors import InputError
 from datagen.sim.fabrics import Fabric
 from datagen.types import Garment
 
@@ -27,6 +34,11 @@ STRUCTURAL, SHEAR, SEAM = 0, 1, 2
 SEAM_STIFFNESS = 20.0  # sewing springs (zero rest length) are this many times the fabric's
 ELASTIC_LENGTH = 0.85  # elastic bands gather the fabric: 15 % shorter rest length
 ELASTIC_STIFFNESS = 5.0  # and stiffer than the fabric
+# Floors for degenerate elements, as a fraction of the garment's median edge length: an edge
+# shorter than this is as stiff as one of this length, a triangle smaller than its square (times
+# the equilateral factor) weighs as much as one that size, and a hinge whose wing sits closer
+# than this fraction of the hinge length to it (a needle) carries no bending.
+DEGENERATE_FRACTION = 0.2
 
 
 @dataclass
@@ -59,6 +71,8 @@ class ClothModel:
     pinned: np.ndarray  # (P,) vertex ids attached to the body
     fabrics: list[Fabric]
     layers: list[int] = None  # layer of each garment (0 = innermost)
+    strain_length: np.ndarray = None  # (E,) the length strain is measured against (floored)
+    degenerate: dict = None  # counts of floored elements: short edges, small triangles, needles
 
     @property
     def n_vertices(self) -> int:
@@ -112,7 +126,8 @@ def bending_stencils(rest: np.ndarray, faces: np.ndarray, edges: np.ndarray, adj
     p0, p1, p2, p3 = rest[e[:, 0]], rest[e[:, 1]], rest[w0], rest[w1]
     hinge = p1 - p0
     length = np.linalg.norm(hinge, axis=1)
-    axis = hinge / length[:, None]
+    # A zero-length hinge (duplicate vertices) gets an arbitrary axis; it is dropped below.
+    axis = hinge / np.maximum(length, 1e-300)[:, None]
 
     def unfold(p):
         rel = p - p0
@@ -122,7 +137,12 @@ def bending_stencils(rest: np.ndarray, faces: np.ndarray, edges: np.ndarray, adj
 
     s2, h2 = unfold(p2)
     s3, h3 = unfold(p3)
-    ok = (h2 > 1e-9 * length) & (h3 > 1e-9 * length) & (length > 1e-12)
+    typical = np.median(length) if len(length) else 1.0
+    ok = (
+        (h2 > DEGENERATE_FRACTION * np.minimum(length, typical))
+        & (h3 > DEGENERATE_FRACTION * np.minimum(length, typical))
+        & (length > DEGENERATE_FRACTION * typical)
+    )
     k2 = length / np.where(ok, h2, 1.0)
     k3 = length / np.where(ok, h3, 1.0)
     k1 = -(k2 * s2 + k3 * s3) / np.where(ok, length, 1.0)
@@ -156,6 +176,8 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
     springs, rest_len, kt, kc, beta, kind, elastic, maxs = [], [], [], [], [], [], [], []
     bends, bweights, bstiff, bbeta = [], [], [], []
     drag, fric, thick, pinned, fabrics = [], [], [], [], []
+    strain_lens: list[np.ndarray] = []
+    degenerate: dict[str, int] = {}
     offset = 0
     face_offset = 0
     for gi, (garment, fabric) in enumerate(garments):
@@ -163,13 +185,17 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
         rest = np.asarray(garment.rest, dtype=np.float64)
         f = np.asarray(garment.faces, dtype=np.int64)
         n = len(x)
-        areas = triangle_areas(rest, f)
+        e, adj = edges_of(f)
+        length = np.linalg.norm(rest[e[:, 1]] - rest[e[:, 0]], axis=1)
+        floor_len = DEGENERATE_FRACTION * float(np.median(length))
+        floor_area = np.sqrt(3.0) / 4.0 * floor_len**2
+        raw_areas = triangle_areas(rest, f)
+        areas = np.maximum(raw_areas, floor_area)
         vertex_area = np.zeros(n)
         np.add.at(vertex_area, f.ravel(), np.repeat(areas / 3.0, 3))
-        e, adj = edges_of(f)
         edge_area = areas[adj[:, 0]] / 3.0 + np.where(adj[:, 1] >= 0, areas[adj[:, 1]] / 3.0, 0.0)
-        length = np.linalg.norm(rest[e[:, 1]] - rest[e[:, 0]], axis=1)
-        safe = np.maximum(length, 1e-9)
+        safe = np.maximum(length, floor_len)
+        n_bends_full = int(np.count_nonzero(adj[:, 1] >= 0))
         k_kind = _spring_kinds(garment.uv, e)
         y_t = np.where(k_kind == SHEAR, fabric.shear, fabric.stretch)
         y_c = np.where(k_kind == SHEAR, fabric.shear, fabric.compression)
@@ -185,12 +211,21 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
         k_t = np.where(is_elastic, k_t * ELASTIC_STIFFNESS, k_t)
         k_c = np.where(is_elastic, k_c * ELASTIC_STIFFNESS, k_c)
         st, sw, sa = bending_stencils(rest, f, e, adj)
+        counts = {
+            "short_edges": int(np.count_nonzero(length < floor_len)),
+            "small_triangles": int(np.count_nonzero(raw_areas < floor_area)),
+            "hinges_without_bending": n_bends_full - len(st),
+        }
+        for key, value in counts.items():
+            degenerate[key] = degenerate.get(key, 0) + value
+        strain_len = np.maximum(length, floor_len)
         if garment.seams is not None and len(garment.seams):
             # Sewing: zero-length springs between the panel edges being stitched.
             seam = np.asarray(garment.seams, dtype=np.int64)
             k_seam = np.full(len(seam), SEAM_STIFFNESS * fabric.stretch)
             e = np.concatenate([e, seam])
             length = np.concatenate([length, np.zeros(len(seam))])
+            strain_len = np.concatenate([strain_len, np.full(len(seam), floor_len)])
             k_t = np.concatenate([k_t, k_seam])
             k_c = np.concatenate([k_c, k_seam])
             k_kind = np.concatenate([k_kind, np.full(len(seam), SEAM, dtype=np.int8)])
@@ -206,6 +241,7 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
         franges.append((face_offset, face_offset + len(f)))
         springs.append(e + offset)
         rest_len.append(length)
+        strain_lens.append(strain_len)
         kt.append(k_t)
         kc.append(k_c)
         beta.append(np.full(len(e), fabric.stretch_damping))
@@ -227,7 +263,9 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
 
     mass = np.concatenate(masses)
     if np.any(mass <= 0):
-        raise ValueError("a garment vertex has no area (unreferenced or degenerate faces)")
+        gi = int(np.concatenate(gids)[np.flatnonzero(mass <= 0)[0]])
+        raise InputError(garments[gi][0].name, "faces",
+                         "every vertex in at least one triangle", "an unreferenced vertex")
     return ClothModel(
         x0=np.concatenate(xs),
         rest_x=np.concatenate(rests),
@@ -255,4 +293,6 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
         pinned=np.concatenate(pinned) if pinned else np.zeros(0, dtype=np.int64),
         fabrics=fabrics,
         layers=[g.layer for g, _ in garments],
+        strain_length=np.concatenate(strain_lens),
+        degenerate=degenerate,
     )

@@ -119,7 +119,8 @@ def _qa(model: ClothModel, x: np.ndarray, v: np.ndarray, sd: np.ndarray | None) 
     fabric_springs = np.isin(model.spring_kind, (STRUCTURAL, SHEAR)) & ~model.spring_elastic
     e = model.springs[fabric_springs]
     length = np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1)
-    strain = length / np.maximum(model.rest_length[fabric_springs], 1e-12) - 1.0
+    rest = model.rest_length[fabric_springs]
+    strain = (length - rest) / model.strain_length[fabric_springs]
     over = strain > model.max_strain[fabric_springs]
     out = {
         "strain_mean": float(np.mean(np.abs(strain))),
@@ -373,6 +374,8 @@ class _Simulation:
             "vertices": self.model.n_vertices,
             "simulated_seconds_per_wall_second": (len(self.frame_substeps) / self.fps) / wall,
             "frame_substeps_max": max(self.frame_substeps, default=self.substeps),
+            # Elements the model floored (a user's template with degenerate triangles).
+            "degenerate_elements": {k: v for k, v in self.model.degenerate.items() if v},
         }
         return SimResult(
             garment_names=[g.name for g in self.garments],

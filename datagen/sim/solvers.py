@@ -487,6 +487,7 @@ class XPBDSolver(ClothSolver):
             e.gravity,
             e.air_drag or e.wind,
         )
+        self._pins(s1)
         for s in self.sets.values():
             s.lam.fill(0.0)
         if self.n_bends:
@@ -533,7 +534,6 @@ class XPBDSolver(ClothSolver):
                     )
             else:
                 self._jacobi_iteration(h, bend)
-        self._pins(s1)
         self._collide(collider, s0, s1, h)
         self._cloth_collisions(h)
         self._run(

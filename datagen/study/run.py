@@ -28,21 +28,21 @@ _WARM: set = set()
 
 
 def run_ours(scene: StudyScene, solver: str, substeps: int, iterations: int,
-             label: str = "", settings=None) -> Run:
+             label: str = "", settings=None, effects: str = "auto") -> Run:
     """Simulate the scene; `settings` (a SolverSettings) may set the implicit tolerances."""
     extra = {}
     if settings is not None:
         extra = dict(tolerance=settings.tolerance, cg_tolerance=settings.cg_tolerance,
                      cg_max_iterations=settings.cg_max_iterations)
     options = SimOptions(solver=solver, substeps=substeps, iterations=iterations,
-                         effects="auto", frames=scene.frames, profile_every=0,
+                         effects=effects, frames=scene.frames, profile_every=0,
                          settle_seconds=0.5 if scene.body is not None else 0.0, **extra)
-    key = (scene.name, solver)
+    key = (scene.name, solver, effects)
     if key not in _WARM:
         # Compile the kernels first (Taichi compiles on first launch): time only simulation.
         track = scene.track
         short = ColliderTrack(track.vertices[:3], track.faces, track.face_mask, track.fps)
-        warm = SimOptions(solver=solver, substeps=2, iterations=1, effects="auto",
+        warm = SimOptions(solver=solver, substeps=2, iterations=1, effects=effects,
                           profile_every=0, settle_seconds=0.0)
         simulate(scene.garments, short, warm)
         _WARM.add(key)

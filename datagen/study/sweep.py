@@ -30,6 +30,17 @@ import numpy as np
 from datagen.study.metrics import final_distance, max_distance, rms_distance
 
 CONVERGED_MM = 0.5
+TWIN_METRES = 1e-6  # the twin reference starts this far from the reference
+CHAOS_MM = 1.0  # the twin has left the reference (the scene is no longer predictable)
+
+
+def predictable_frames(ref: np.ndarray, twin: np.ndarray) -> int:
+    """Frames from the start over which a twin started TWIN_METRES away stays within CHAOS_MM
+    RMS of the reference: beyond them a difference measures the scene's chaos, not a solver's
+    discretisation error."""
+    d = 1000 * np.sqrt(np.mean(np.sum((ref - twin) ** 2, axis=-1), axis=-1))
+    over = np.flatnonzero(d > CHAOS_MM)
+    return int(over[0]) if len(over) else len(ref)
 
 
 @dataclass
@@ -42,7 +53,8 @@ class Row:
     iterations: int
     vertices: int
     seconds_per_sim_second: float
-    rms_mm: float
+    rms_mm: float  # over the predictable horizon (see predictable_frames)
+    rms_1s_mm: float  # over the first second, chaos included
     max_mm: float
     final_mm: float
     strain_p999: float
@@ -68,15 +80,16 @@ def quick_plan() -> Plan:
     return Plan(
         scenes=[("sheet_sphere", "coarse")],
         fabrics=["cotton"],
-        configs={"xpbd": [(5, 1), (10, 1), (20, 1), (40, 1)], "implicit": [(2, 4), (5, 4)],
-                 "explicit": [(200, 1)]},
+        configs={"xpbd": [(5, 1), (20, 1), (10, 2), (20, 4), (40, 8)],
+                 "implicit": [(2, 4), (5, 4)], "explicit": [(200, 1)]},
         reference_start=40, reference_levels=3, reference_budget_s=240.0,
         blender_qualities=[5], blender_converged=10,
     )
 
 
 def full_plan() -> Plan:
-    xpbd = [(5, 1), (10, 1), (20, 1), (40, 1), (80, 1), (10, 2), (20, 2)]
+    xpbd = [(5, 1), (10, 1), (20, 1), (40, 1), (80, 1), (10, 2), (20, 2), (20, 4), (40, 4),
+            (40, 8)]
     return Plan(
         scenes=[("sheet_sphere", "4k"), ("skirt_body", ""), ("tshirt_walk", "")],
         fabrics=["cotton", "denim"],
@@ -89,14 +102,18 @@ def full_plan() -> Plan:
 
 # -- runs in other processes -------------------------------------------------------------------
 def run_worker(scene: str, fabric: str, resolution: str, solver: str, substeps: int,
-               iterations: int, fp64: bool) -> dict:
+               iterations: int, fp64: bool, frames: int | None = None,
+               perturb: float = 0.0) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run.npz"
         cmd = [sys.executable, "-m", "datagen.study.worker", "--scene", scene, "--fabric",
                fabric, "--resolution", resolution, "--solver", solver, "--substeps",
-               str(substeps), "--iterations", str(iterations), "--out", str(out)]
+               str(substeps), "--iterations", str(iterations), "--out", str(out),
+               "--perturb", repr(perturb)]
         if fp64:
             cmd.append("--fp64")
+        if frames is not None:
+            cmd += ["--frames", str(frames)]
         r = subprocess.run(cmd, capture_output=True, text=True)
         if r.returncode != 0:
             raise RuntimeError(f"study worker failed: {r.stderr[-800:]}")
@@ -145,12 +162,15 @@ def _at_probes(traj: np.ndarray, mapping) -> np.ndarray:
 
 
 def _row(scene, fabric, resolution, series, sub, it, vertices, run_positions, ref, horizon,
-         seconds_per_sim, qa, note="") -> Row:
+         seconds_per_sim, qa, note="", predictable=None) -> Row:
+    n = min(len(run_positions), len(ref))
+    run_positions, ref = run_positions[:n], ref[:n]
     return Row(
         scene=scene, fabric=fabric, resolution=resolution, series=series, substeps=sub,
         iterations=it, vertices=vertices, seconds_per_sim_second=seconds_per_sim,
-        rms_mm=1000 * rms_distance(run_positions, ref, horizon),
-        max_mm=1000 * max_distance(run_positions, ref, horizon),
+        rms_mm=1000 * rms_distance(run_positions, ref, predictable or horizon),
+        rms_1s_mm=1000 * rms_distance(run_positions, ref, horizon),
+        max_mm=1000 * max_distance(run_positions, ref, predictable or horizon),
         final_mm=1000 * final_distance(run_positions, ref),
         strain_p999=float(np.max(qa.get("strain_p999", [np.nan]))),
         deep_share=float(np.max(qa.get("deep_share", [np.nan]))),
@@ -169,6 +189,7 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
     rows: list[Row] = []
     ladders: dict[str, list[dict]] = {}
     model_gap: dict[str, float] = {}
+    horizons: dict[str, int] = {}
     from datagen.study import blender as peer
 
     have_blender = blender and peer.blender_executable() is not None
@@ -183,6 +204,12 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
             horizon = scene.horizon + 1
             ref, ladders[key] = reference_ladder(scene_name, fabric, resolution, plan,
                                                  horizon, log)
+            finest = ladders[key][-1]["substeps"]
+            twin = run_worker(scene_name, fabric, resolution, "implicit", finest, 20, True,
+                              perturb=TWIN_METRES)["positions"]
+            pred = predictable_frames(ref, twin)
+            horizons[key] = pred
+            log(f"  predictable for {pred} frames (twin {TWIN_METRES * 1e6:.0f} um away)")
             for solver, configs in plan.configs.items():
                 for sub, it in configs:
                     try:
@@ -190,12 +217,13 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
                     except RejectedSequence as exc:
                         rows.append(Row(scene_name, fabric, resolution, solver, sub, it,
                                         scene.n_vertices, np.nan, np.nan, np.nan, np.nan,
-                                        np.nan, np.nan, "rejected", exc.reason))
+                                        np.nan, np.nan, np.nan, "rejected", exc.reason))
                         log(f"  {solver} {sub}x{it}: rejected ({exc.reason})")
                         continue
                     rows.append(_row(scene_name, fabric, resolution, solver, sub, it,
                                      scene.n_vertices, run.positions, ref, horizon,
-                                     run.seconds_per_simulated_second, run.qa))
+                                     run.seconds_per_simulated_second, run.qa,
+                                     predictable=pred))
                     log(f"  {solver} {sub}x{it}: {asdict(rows[-1])}")
             for other in plan.resolutions.get(scene_name, []):
                 alt = build_scene(scene_name, fabric, other)
@@ -207,20 +235,22 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
                     rows.append(_row(scene_name, fabric, other, "xpbd", sub, it,
                                      alt.n_vertices, _at_probes(run.positions, mapping), ref,
                                      horizon, run.seconds_per_simulated_second, run.qa,
-                                     "measured at the reference mesh's vertices"))
+                                     "measured at the reference mesh's vertices", pred))
                     log(f"  xpbd {other} {sub}x{it}: {asdict(rows[-1])}")
             if have_blender:
                 converged = peer.run_blender(scene, plan.blender_converged)
-                model_gap[key] = 1000 * rms_distance(converged.positions, ref, horizon)
+                model_gap[key] = 1000 * rms_distance(converged.positions, ref, pred)
                 for q in plan.blender_qualities:
                     run = peer.run_blender(scene, q)
                     rows.append(_row(scene_name, fabric, resolution, "blender", q, 1,
                                      scene.n_vertices, run.positions, converged.positions,
                                      horizon, run.seconds_per_simulated_second, {},
-                                     f"against Blender quality {plan.blender_converged}"))
+                                     f"against Blender quality {plan.blender_converged}",
+                                     pred))
                     log(f"  blender q{q}: {asdict(rows[-1])}")
     summary = {
         "quick": quick, "minutes": (time.time() - t_start) / 60, "ladders": ladders,
+        "predictable_frames": horizons, "twin_metres": TWIN_METRES, "chaos_mm": CHAOS_MM,
         "blender_vs_ours_mm": model_gap, "blender": peer.blender_version() if have_blender
         else "absent", "plan": asdict(plan),
     }
@@ -295,6 +325,29 @@ def plot(path: Path, rows: list[Row], presets: dict[str, tuple[int, int]] | None
     plt.close(fig)
 
 
-def main_cli(out: str, quick: bool, blender: bool) -> dict:
+def main_cli(out: str, quick: bool, blender: bool, doc: str | None, command: str) -> dict:
+    """Run the study into `out`, then write the report to `doc`."""
+    from datagen.sim.simulate import QUALITY_PRESETS
+    from datagen.study.report import write_report
+
     os.environ.setdefault("PYTHONWARNINGS", "ignore")
-    return run_study(out, quick=quick, blender=blender)
+    summary = run_study(out, quick=quick, blender=blender)
+    rows = read_rows(Path(out) / "accuracy.csv")
+    presets = QUALITY_PRESETS["xpbd"]
+    plot(Path(out) / "accuracy-vs-time.png", rows, presets)
+    write_report(Path(doc) if doc else Path(out) / "accuracy-vs-time.md", Path(out), rows,
+                 summary, presets, command)
+    return summary
+
+
+def read_rows(path: Path) -> list[Row]:
+    with open(path, newline="") as f:
+        out = []
+        for d in csv.DictReader(f):
+            for name, fld in Row.__dataclass_fields__.items():
+                if fld.type == "int":
+                    d[name] = int(d[name])
+                elif fld.type == "float":
+                    d[name] = float(d[name])
+            out.append(Row(**d))
+    return out

@@ -21,6 +21,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--substeps", type=int, required=True)
     parser.add_argument("--iterations", type=int, default=20)
     parser.add_argument("--fp64", action="store_true")
+    parser.add_argument("--frames", type=int, default=None)
+    parser.add_argument("--perturb", type=float, default=0.0, help="metres (the twin run)")
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
     if args.fp64:
@@ -31,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     from datagen.study.run import run_ours
     from datagen.study.scenes import build_scene
 
-    scene = build_scene(args.scene, args.fabric, args.resolution)
+    scene = build_scene(args.scene, args.fabric, args.resolution, args.frames, args.perturb)
     t = time.perf_counter()
     settings = SolverSettings(tolerance=1e-7, cg_tolerance=1e-6, cg_max_iterations=1000)
     run = run_ours(scene, args.solver, args.substeps, args.iterations, settings=settings)

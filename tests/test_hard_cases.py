@@ -1,0 +1,78 @@
+"""The simulator's hard cases (pipelines/hard_cases.yaml), short versions, at default settings.
+
+Every case must end finite, with no more than 1 % of vertices deeper than the thickness in any
+frame and a bounded kinetic energy, or be rejected for the reason the case expects. The strain
+criterion (at most 0.1 % of fabric edges beyond the fabric's bound) holds for the cases not in
+STRAIN_OVER_BOUND; those exceed it at the default preset (docs/benchmarks.md has the figures) and
+are marked as expected failures so that a fix shows up as an unexpected pass.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from datagen.errors import InputError
+from datagen.pipeline.hard_cases import (
+    DEEP_SHARE_MAX,
+    KINETIC_PER_KG_MAX,
+    STRAIN_SHARE_MAX,
+    load_hard_cases,
+    run_case,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+
+CASES_FILE = REPO / "pipelines" / "hard_cases.yaml"
+CASES = load_hard_cases(CASES_FILE)
+# Over the 0.1 % strain criterion at the default preset (20 substeps x 4 iterations), measured
+# 2026-11-22: stiff fabrics and fast limbs leave stretch springs too long for a few frames (40
+# substeps bring leather within it), and t-shirts rest with 0.6-1 % of their edges past 25 %
+# around the neckline and shoulders. Still a bound against blow-ups: STRAIN_SHARE_CEILING.
+STRAIN_OVER_BOUND = {
+    "leather_trousers", "denim_tshirt", "long_skirt_spin", "heavy_body_tightest_fit",
+    "thin_tall_body_tightest_fit", "starts_inside_body", "tshirt_over_trousers",
+    "degenerate_template", "thirty_seconds", "cmu_forward_jump", "cmu_jump_balance",
+    "cmu_jump_asf", "cmu_playground_jumps",
+}
+STRAIN_SHARE_CEILING = 0.10  # measured worst: 8.1 % (cmu_playground_jumps, short version)
+
+
+@pytest.mark.parametrize("case", CASES.cases, ids=[c.name for c in CASES.cases])
+def test_hard_case(case, body_model):
+    result = run_case(case, CASES, body_model, CASES_FILE.parent, short=True)
+    if case.expect == "rejected":
+        assert result.passed, result.detail
+        assert result.status == "rejected"
+        return
+    assert result.status == "ok", result.detail
+    assert np.isfinite(result.strain_p999_max), result.detail
+    assert result.deep_share_max <= DEEP_SHARE_MAX, result.detail
+    assert result.kinetic_per_kg_max <= KINETIC_PER_KG_MAX, result.detail
+    assert result.strain_share_max <= STRAIN_SHARE_CEILING, result.detail
+    if case.name in STRAIN_OVER_BOUND:
+        if result.strain_share_max > STRAIN_SHARE_MAX:
+            pytest.xfail(f"strain over the bound at the default preset: {result.detail}")
+        pytest.fail(f"{case.name} now passes the strain criterion: take it off STRAIN_OVER_BOUND")
+    assert result.strain_share_max <= STRAIN_SHARE_MAX, result.detail
+    assert result.passed, result.detail
+
+
+def test_every_issue_case_is_in_the_file():
+    names = {c.name for c in CASES.cases}
+    required = {"leather_trousers", "denim_tshirt", "long_skirt_spin", "jump_landing",
+                "fast_kick", "heavy_body_tightest_fit", "thin_tall_body_tightest_fit",
+                "starts_inside_body", "tshirt_over_trousers", "degenerate_template",
+                "thirty_seconds", "root_teleport"}
+    assert required <= names
+    assert sum(c.motion.source == "bvh" for c in CASES.cases) >= 4  # the CMU jump clips
+
+
+def test_bad_case_file_names_the_field(tmp_path):
+    bad = tmp_path / "cases.yaml"
+    bad.write_text("cases:\n  - name: x\n    why: y\n    garments: [{template: tshirt}]\n"
+                   "    expect: maybe\n")
+    with pytest.raises(InputError, match=r"cases\[0\]\.expect"):
+        load_hard_cases(bad)
