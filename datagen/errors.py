@@ -41,6 +41,11 @@ class InputError(DatagenError):
             message += f", got {shown}"
         super().__init__(f"{where}: {message}" if where else message)
 
+    def __reduce__(self):
+        # Raised in a worker process, it must cross back to the parent whole (pickle calls the
+        # constructor with self.args, which holds only the message).
+        return (InputError, (self.source, self.field, self.expected, self.got))
+
 
 class RejectedSequence(DatagenError):
     """A sequence that cannot be made valid (an arm through the torso): recorded, not written."""
@@ -51,3 +56,6 @@ class RejectedSequence(DatagenError):
         self.frames = frames
         where = f" (frames {frames[0]}-{frames[1]})" if frames else ""
         super().__init__(f"rejected at {stage}: {reason}{where}")
+
+    def __reduce__(self):
+        return (RejectedSequence, (self.stage, self.reason, self.frames))
