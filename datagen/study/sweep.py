@@ -307,8 +307,7 @@ def plot(path: Path, rows: list[Row], presets: dict[str, tuple[int, int]] | None
             for name, (sub, it) in presets.items():
                 for r in rows:
                     if (r.scene, r.fabric, r.series, r.substeps, r.iterations) == (
-                            scene, fabric, "xpbd", sub, it) and r.resolution not in ("coarse",
-                                                                                      "10k"):
+                            scene, fabric, "xpbd", sub, it) and r.note == "":
                         ax.scatter([r.seconds_per_sim_second], [r.rms_mm], s=140,
                                    facecolors="none", edgecolors="black")
                         ax.annotate(name, (r.seconds_per_sim_second, r.rms_mm), fontsize=8,
@@ -316,7 +315,7 @@ def plot(path: Path, rows: list[Row], presets: dict[str, tuple[int, int]] | None
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("wall-clock seconds per simulated second")
-        ax.set_ylabel("RMS error over the first second (mm)")
+        ax.set_ylabel("RMS error over the predictable horizon (mm)")
         ax.set_title(f"{scene}, {fabric}")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
