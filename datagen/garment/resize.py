@@ -112,7 +112,7 @@ def push_out(
         sd, normals = body_signed_distance(out, body)
         short = clearance + 0.001 - sd
         if np.all(short <= 0.001):
-            break
+            return out  # every vertex at least `clearance` clear
         push = np.where(short > 0, short, 0.0)[:, None] * normals
         spread = laplacian_smooth(push, faces, 3, 0.5)
         # Never less than the local need: smoothing spreads, it must not undo.

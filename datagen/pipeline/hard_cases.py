@@ -138,7 +138,7 @@ def push_inside(depth: float):
         mesh = trimesh.Trimesh(rest.vertices, rest.faces, process=False)
         out = []
         for g in garments:
-            closest, dist, tri = trimesh.proximity.closest_point(mesh, g.vertices)
+            closest, _, tri = trimesh.proximity.closest_point(mesh, g.vertices)
             centre = g.vertices[np.argmin(g.vertices[:, 1])]  # the front-most point
             patch = np.linalg.norm(g.vertices - centre, axis=1) < 0.08
             normals = mesh.face_normals[tri]

@@ -218,7 +218,7 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
         }
         for key, value in counts.items():
             degenerate[key] = degenerate.get(key, 0) + value
-        strain_len = np.maximum(length, floor_len)
+        strain_len = safe  # strain, like stiffness, against the floored length
         if garment.seams is not None and len(garment.seams):
             # Sewing: zero-length springs between the panel edges being stitched.
             seam = np.asarray(garment.seams, dtype=np.int64)

@@ -178,7 +178,9 @@ def _row(scene, fabric, resolution, series, sub, it, vertices, run_positions, re
     )
 
 
-def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=print) -> dict:
+def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=print,
+              presets: dict[str, tuple[int, int]] | None = None) -> tuple[dict, list[Row]]:
+    """Run the plan; write the CSV, the summary and the plot (`presets` circled) into `out`."""
     from datagen.errors import RejectedSequence
     from datagen.study.run import run_ours
     from datagen.study.scenes import build_scene
@@ -254,18 +256,19 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
         "blender_vs_ours_mm": model_gap, "blender": peer.blender_version() if have_blender
         else "absent", "plan": asdict(plan),
     }
-    write_outputs(out, rows, summary)
-    return summary
+    write_outputs(out, rows, summary, presets)
+    return summary, rows
 
 
-def write_outputs(out: Path, rows: list[Row], summary: dict) -> None:
+def write_outputs(out: Path, rows: list[Row], summary: dict,
+                  presets: dict[str, tuple[int, int]] | None = None) -> None:
     with open(out / "accuracy.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(asdict(rows[0]).keys()))
         w.writeheader()
         for r in rows:
             w.writerow(asdict(r))
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
-    plot(out / "accuracy-vs-time.png", rows)
+    plot(out / "accuracy-vs-time.png", rows, presets)
 
 
 def pareto(points: list[tuple[float, float]]) -> list[int]:
@@ -330,23 +333,8 @@ def main_cli(out: str, quick: bool, blender: bool, doc: str | None, command: str
     from datagen.study.report import write_report
 
     os.environ.setdefault("PYTHONWARNINGS", "ignore")
-    summary = run_study(out, quick=quick, blender=blender)
-    rows = read_rows(Path(out) / "accuracy.csv")
     presets = QUALITY_PRESETS["xpbd"]
-    plot(Path(out) / "accuracy-vs-time.png", rows, presets)
+    summary, rows = run_study(out, quick=quick, blender=blender, presets=presets)
     write_report(Path(doc) if doc else Path(out) / "accuracy-vs-time.md", Path(out), rows,
                  summary, presets, command)
     return summary
-
-
-def read_rows(path: Path) -> list[Row]:
-    with open(path, newline="") as f:
-        out = []
-        for d in csv.DictReader(f):
-            for name, fld in Row.__dataclass_fields__.items():
-                if fld.type == "int":
-                    d[name] = int(d[name])
-                elif fld.type == "float":
-                    d[name] = float(d[name])
-            out.append(Row(**d))
-    return out
