@@ -1,6 +1,7 @@
 """`make bench`: every benchmark in turn; each writes its own section of docs/benchmarks.md.
 
-`--quick` leaves out the long ones (the full hard cases and the full accuracy study)."""
+`--quick` leaves out the long ones (the full hard cases and the dataset runs; the accuracy study
+is its own command, `datagen bench accuracy`)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ BENCHMARKS = [
     ("bench_outfits", False),
     ("bench_sim", False),
     ("bench_hard_cases", True),
+    ("bench_dataset", True),
 ]
 
 

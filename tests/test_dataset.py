@@ -135,6 +135,26 @@ def test_bad_recipes_fail_before_any_work(tmp_path, patch, field):
     assert not list(out.glob("shard-*"))
 
 
+def test_recipe_with_a_clip_too_short_fails_before_any_work(tmp_path, repo_dir):
+    """CMU 02_03 lasts 1.4 s: a recipe asking for 90 frames at 30 fps names it at the start,
+    rather than rejecting, one by one, the sequences that happen to draw it."""
+    from datagen.pipeline.dataset import run_dataset
+
+    clips = repo_dir / "datagen" / "data" / "mocap" / "cmu"
+    text = TINY.format(n=2).replace("  frames: 6", "  frames: 90").replace(
+        "  actions:", f"  sources: {{procedural: 1, bvh: 1}}\n  bvh_files: "
+        f"['{clips / '12_01_mb.bvh'}', '{clips / '02_03_daz.bvh'}']\n  actions:")
+    recipe = tmp_path / "clips.yaml"
+    recipe.write_text(text)
+    out = tmp_path / "out"
+    with pytest.raises(InputError) as exc:
+        run_dataset(recipe, out, workers=1, progress=False)
+    message = str(exc.value)
+    assert "clips.yaml" in message and "motion.bvh_files" in message
+    assert "at least 90 frames" in message and "02_03_daz.bvh has 43 (1.40 s)" in message
+    assert not list(out.glob("shard-*"))
+
+
 def test_foreign_output_folder_is_refused_and_kept(tmp_path):
     from datagen.pipeline.dataset import run_dataset
 

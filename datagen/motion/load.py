@@ -35,6 +35,33 @@ def mirror_motion(motion: Motion) -> Motion:
     )
 
 
+def _load_clip(source: str, path: Path, label: str) -> Motion:
+    if source == "bvh":
+        from datagen.motion.bvh import load_bvh
+
+        return load_bvh(path, label=label)
+    from datagen.motion.amass import load_amass
+
+    return load_amass(path, label=label)
+
+
+def check_clip_lengths(source: str, files: list[str], base_dir: Path | None, frames: int,
+                       fps: float, recipe: Path | str | None = None) -> None:
+    """Every clip a recipe may draw holds `frames` frames at `fps`: a dataset run finds a short
+    clip before it starts, instead of rejecting the sequences that draw it one by one."""
+    for file in files:
+        path = resolve_motion_file(file, base_dir)
+        clip = resample(_load_clip(source, path, path.stem), fps)
+        if clip.n_frames < frames:
+            raise InputError(
+                recipe or path,
+                f"motion.{source}_files",
+                f"clips of at least {frames} frames at {fps:g} fps (motion.frames); {file} has "
+                f"{clip.n_frames} ({clip.duration:.2f} s)",
+                file,
+            )
+
+
 def motion_from_spec(spec: MotionSpec, base_dir: Path | None = None) -> Motion:
     """The motion a spec describes, `spec.frames` frames at `spec.fps` (lead-in not included)."""
     if spec.source == "procedural":
@@ -42,15 +69,7 @@ def motion_from_spec(spec: MotionSpec, base_dir: Path | None = None) -> Motion:
 
         return generate(spec.action, spec.frames, spec.fps, dict(spec.params), mirror=spec.mirror)
     path = resolve_motion_file(spec.file or "", base_dir)
-    if spec.source == "bvh":
-        from datagen.motion.bvh import load_bvh
-
-        full = load_bvh(path, label=spec.action)
-    else:
-        from datagen.motion.amass import load_amass
-
-        full = load_amass(path, label=spec.action)
-    full = resample(full, spec.fps)
+    full = resample(_load_clip(spec.source, path, spec.action), spec.fps)
     if full.n_frames < spec.frames:
         raise InputError(
             path,

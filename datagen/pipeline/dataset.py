@@ -231,6 +231,17 @@ def write_card(out: Path, loaded: LoadedRecipe, rows: list[dict], wall: float | 
 
 
 # -- the run -----------------------------------------------------------------------------------
+def check_recipe_clips(loaded: LoadedRecipe) -> None:
+    """Every motion clip the recipe lists is long enough for its sequences."""
+    from datagen.motion.load import check_clip_lengths
+
+    motion = loaded.recipe.motion
+    for source in ("bvh", "amass"):
+        if motion.sources.get(source, 0) > 0:
+            check_clip_lengths(source, loaded.motion_files(source), loaded.base_dir,
+                               motion.frames, motion.fps, loaded.path)
+
+
 def run_dataset(recipe_path: str | Path, out: str | Path, n: int | None = None,
                 workers: int = 1, scheduler: str | None = None, shard_size: int | None = None,
                 progress: bool = True) -> list[dict]:
@@ -247,6 +258,7 @@ def run_dataset(recipe_path: str | Path, out: str | Path, n: int | None = None,
 
     for index in range(n):
         sample_scene(loaded, index)
+    check_recipe_clips(loaded)
     done = finished_shards(state)
     pending = [k for k in range(state.n_shards) if k not in done]
     todo = [i for k in pending for i in state.indices(k)]

@@ -114,22 +114,25 @@ def fabric_from_blender(name: str, preset: BlenderPreset, **overrides) -> Fabric
 
 
 # Thicker, stiffer fabrics keep a larger gap; strain bounds follow each fabric's stiffness
-# (a soft silk may stretch more under the same load than leather).
+# (a soft silk may stretch more under the same load than leather). Friction against skin sits
+# at the upper end of measured textile-on-skin values (about 0.3-0.9, higher on moist skin):
+# a shoulder strap rests on Anny's trapezius, sloped at about 35 degrees, and at mu 0.2-0.5 the
+# straps of a top slid down the arms during the lead-in (tests/test_sim_dressing.py).
 FABRICS: dict[str, Fabric] = {
     "cotton": fabric_from_blender(
-        "cotton", BLENDER_PRESETS["cotton"], friction=0.3, thickness=0.004, max_strain=0.25
+        "cotton", BLENDER_PRESETS["cotton"], friction=0.6, thickness=0.004, max_strain=0.25
     ),
     "silk": fabric_from_blender(
-        "silk", BLENDER_PRESETS["silk"], friction=0.2, thickness=0.003, max_strain=0.35
+        "silk", BLENDER_PRESETS["silk"], friction=0.6, thickness=0.003, max_strain=0.35
     ),
     "denim": fabric_from_blender(
-        "denim", BLENDER_PRESETS["denim"], friction=0.4, thickness=0.005, max_strain=0.20
+        "denim", BLENDER_PRESETS["denim"], friction=0.7, thickness=0.005, max_strain=0.20
     ),
     "leather": fabric_from_blender(
-        "leather", BLENDER_PRESETS["leather"], friction=0.5, thickness=0.006, max_strain=0.15
+        "leather", BLENDER_PRESETS["leather"], friction=0.7, thickness=0.006, max_strain=0.15
     ),
     "rubber": fabric_from_blender(
-        "rubber", BLENDER_PRESETS["rubber"], friction=0.8, thickness=0.005, max_strain=0.40
+        "rubber", BLENDER_PRESETS["rubber"], friction=1.0, thickness=0.005, max_strain=0.40
     ),
 }
 

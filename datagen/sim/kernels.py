@@ -847,7 +847,8 @@ def grid_nearest(
 P_H, P_OMEGA, P_RECOVER, P_ODO, P_CELL, P_INV_CELL = range(6)
 P_GRAVITY, P_WIND, P_ORIGIN, P_L_ORIGIN = 6, 9, 12, 15  # 3 values each
 P_S_INV_CELL, P_S_RADIUS, P_S_MIN_REST, P_L_INV_CELL, P_L_CELL, P_TRAVEL = range(18, 24)
-P_SIZE = 24
+P_L_ODO, P_L_TRAVEL = 24, 25
+P_SIZE = 26
 Q_N_SUB, Q_N_ITER, Q_SWEEP0, Q_N_SETS, Q_N_BENDS, Q_N_PINS, Q_S_MASK = range(7)
 Q_DIMS, Q_L_DIMS = 7, 10  # 3 values each
 Q_SIZE = 13
@@ -902,8 +903,10 @@ def xpbd_frame(
     l_guard: V4,
     l_faces: I3,
     l_fadj: I3,
-    l_b: V3,
-    l_n: V3,
+    l_b0: V3,
+    l_b1: V3,
+    l_n0: V3,
+    l_n1: V3,
     l_starts: I1,
     l_items: I1,
     P: F1,
@@ -934,6 +937,8 @@ def xpbd_frame(
     s_min_rest = P[P_S_MIN_REST]
     l_inv_cell = P[P_L_INV_CELL]
     l_cell = P[P_L_CELL]
+    l_odo0 = P[P_L_ODO]
+    l_travel = P[P_L_TRAVEL]
     n_sub = Q[Q_N_SUB]
     n_iter = Q[Q_N_ITER]
     sweep0 = Q[Q_SWEEP0]
@@ -1015,16 +1020,17 @@ def xpbd_frame(
                     use_friction,
                 )
         if ti.static(use_layers):
-            # Outer garments against the inner one's surface (as it was at the frame's start).
+            # Outer garments against the inner one's surface, moving through the frame.
             for i in range(n):
                 nearest_one(
-                    i, x, l_w, l_b, l_b, l_faces, l_origin, l_inv_cell, l_dims, l_starts, l_items,
-                    1.0, l_cell, l_tri, 1, l_guard, 0.0,
+                    i, x, l_w, l_b0, l_b1, l_faces, l_origin, l_inv_cell, l_dims, l_starts,
+                    l_items, s1, l_cell, l_tri, 1, l_guard, l_odo0 + s1 * l_travel,
                 )
             for i in range(n):
                 collide_one(
-                    i, x, xp, l_w, l_tri, l_faces, l_fadj, l_b, l_b, l_n, l_n, 0.0, 1.0, thickness,
-                    friction, recover, 2.0 * l_cell, contact_n, contact_v, h, use_friction,
+                    i, x, xp, l_w, l_tri, l_faces, l_fadj, l_b0, l_b1, l_n0, l_n1, s0, s1,
+                    thickness, friction, recover, 2.0 * l_cell, contact_n, contact_v, h,
+                    use_friction,
                 )
         if ti.static(use_self):
             self_hash_build(x, s_counts, s_starts, s_items, s_inv_cell, s_mask)
