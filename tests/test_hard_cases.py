@@ -27,17 +27,14 @@ REPO = Path(__file__).resolve().parents[1]
 
 CASES_FILE = REPO / "pipelines" / "hard_cases.yaml"
 CASES = load_hard_cases(CASES_FILE)
-# Over the 0.1 % strain criterion at the default preset (20 substeps x 4 iterations), measured
-# 2026-11-22: stiff fabrics and fast limbs leave stretch springs too long for a few frames (40
-# substeps bring leather within it), and t-shirts rest with 0.6-1 % of their edges past 25 %
-# around the neckline and shoulders. Still a bound against blow-ups: STRAIN_SHARE_CEILING.
-STRAIN_OVER_BOUND = {
-    "leather_trousers", "denim_tshirt", "long_skirt_spin", "heavy_body_tightest_fit",
-    "thin_tall_body_tightest_fit", "starts_inside_body", "tshirt_over_trousers",
-    "degenerate_template", "cmu_forward_jump", "cmu_jump_balance",
-    "cmu_jump_asf", "cmu_playground_jumps",
-}
-STRAIN_SHARE_CEILING = 0.10  # measured worst: 8.1 % (cmu_playground_jumps, short version)
+# Over the 0.1 % strain criterion at the default preset (20 substeps x 4 iterations, frames
+# redone with up to 4x the substeps while over the bound), measured 2026-11-22: a denim t-shirt
+# keeps 0.11 % of its edges past the bound in the two frames after the lead-in (edges in contact
+# under the arms, held by friction; more substeps do not change it), and a garment made for a
+# body much smaller than the heavy subject stays stretched (0.14 %). Still a bound against
+# blow-ups: STRAIN_SHARE_CEILING.
+STRAIN_OVER_BOUND = {"denim_tshirt", "heavy_body_tightest_fit"}
+STRAIN_SHARE_CEILING = 0.01  # measured worst: 0.14 % (heavy_body_tightest_fit, short version)
 
 
 @pytest.mark.parametrize("case", CASES.cases, ids=[c.name for c in CASES.cases])
