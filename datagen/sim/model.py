@@ -22,6 +22,7 @@ The data is not changed; the model counts what it floored (`ClothModel.degenerat
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +40,10 @@ ELASTIC_STIFFNESS = 5.0  # and stiffer than the fabric
 # the equilateral factor) weighs as much as one that size, and a hinge whose wing sits closer
 # than this fraction of the hinge length to it (a needle) carries no bending.
 DEGENERATE_FRACTION = 0.2
+# The QA bound on stretch: at most this share of the fabric springs beyond their fabric's
+# max_strain in a frame (99.9 % within it). The simulator redoes frames over it; the hard cases
+# and validation judge by it.
+STRAIN_SHARE_MAX = 0.001
 
 
 @dataclass
@@ -77,6 +82,12 @@ class ClothModel:
     @property
     def n_vertices(self) -> int:
         return len(self.x0)
+
+    @functools.cached_property
+    def fabric_springs(self) -> np.ndarray:
+        """(E,) bool: the stretch and shear springs whose strain the QA measures (seams and
+        elastic bands, meant to be stretched, excluded)."""
+        return np.isin(self.spring_kind, (STRUCTURAL, SHEAR)) & ~self.spring_elastic
 
     @property
     def inv_mass(self) -> np.ndarray:

@@ -18,7 +18,7 @@ from datagen.errors import InputError, RejectedSequence
 from datagen.sim.collider import BodyCollider, vertex_normals
 from datagen.sim.effects import Effects, SceneContent, resolve_effects
 from datagen.sim.fabrics import Fabric, get_fabric
-from datagen.sim.model import SHEAR, STRUCTURAL, ClothModel, build_cloth_model
+from datagen.sim.model import STRAIN_SHARE_MAX, ClothModel, build_cloth_model
 from datagen.sim.solvers import SolverSettings, make_solver
 from datagen.types import BodySequence, Garment, SimResult
 
@@ -30,10 +30,7 @@ QUALITY_PRESETS: dict[str, dict[str, tuple[int, int]]] = {
     "implicit": {"draft": (2, 4), "default": (5, 10), "reference": (50, 20)},
 }
 MAX_RETRIES = 2
-# A frame is redone with more substeps when more edges than this end beyond their fabric's
-# strain bound (the QA bound: 99.9 % of edges within it).
-STRAIN_SHARE_MAX = 0.001
-REFINE_REST = 10
+REFINE_REST = 10  # frames without strain refinement after one that did not help
 SPEED_LIMIT = 15.0  # m/s: a cloth vertex faster than this and 3x the body's fastest is runaway
 
 
@@ -123,9 +120,9 @@ def scene_content(garments: list[Garment], has_body: bool, wind, fabrics) -> Sce
 
 
 def _fabric_strain(model: ClothModel, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Strain of the fabric's stretch and shear springs (elastic bands excluded: they are
-    meant to be stretched) and whether each is beyond its fabric's bound."""
-    fabric_springs = np.isin(model.spring_kind, (STRUCTURAL, SHEAR)) & ~model.spring_elastic
+    """Strain of the fabric springs (ClothModel.fabric_springs) and whether each is beyond its
+    fabric's bound."""
+    fabric_springs = model.fabric_springs
     e = model.springs[fabric_springs]
     length = np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1)
     rest = model.rest_length[fabric_springs]

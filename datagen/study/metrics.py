@@ -5,6 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 
+def rms_by_frame(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(F,) RMS over vertices of the distance between two trajectories, frame by frame."""
+    d = np.linalg.norm(np.asarray(a) - np.asarray(b), axis=-1)
+    return np.sqrt(np.mean(d * d, axis=-1))
+
+
 def rms_distance(a: np.ndarray, b: np.ndarray, frames: int | None = None) -> float:
     """RMS over frames and vertices of the distance between two trajectories (F, V, 3)."""
     sl = slice(0, frames)

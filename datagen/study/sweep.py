@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from datagen.study.metrics import final_distance, max_distance, rms_distance
+from datagen.study.metrics import final_distance, max_distance, rms_by_frame, rms_distance
 
 CONVERGED_MM = 0.5
 TWIN_METRES = 1e-6  # the twin reference starts this far from the reference
@@ -38,8 +38,7 @@ def predictable_frames(ref: np.ndarray, twin: np.ndarray) -> int:
     """Frames from the start over which a twin started TWIN_METRES away stays within CHAOS_MM
     RMS of the reference: beyond them a difference measures the scene's chaos, not a solver's
     discretisation error."""
-    d = 1000 * np.sqrt(np.mean(np.sum((ref - twin) ** 2, axis=-1), axis=-1))
-    over = np.flatnonzero(d > CHAOS_MM)
+    over = np.flatnonzero(1000 * rms_by_frame(ref, twin) > CHAOS_MM)
     return int(over[0]) if len(over) else len(ref)
 
 
