@@ -76,6 +76,27 @@ def test_hundred_outfits_clear_the_rest_body(fitted):
     print(f"minimum clearance over 100 outfits: {1000 * worst[0]:.2f} mm ({worst[1]})")
 
 
+def test_waistbands_are_attached_and_elastic_as_sampled(fitted):
+    """Trousers, skirts and the sewn-in waistband of jumpsuits and dresses hold the garment at
+    the waist; the waist is elastic exactly when the outfit drew it so, sewn or not."""
+    outfits = {name: outfit for name, _, outfit in outfit_cases()}
+    sewn_elastic = {True: 0, False: 0}
+    for name, _, garments in fitted:
+        outfit = outfits[name]
+        for g in garments:
+            spec = next(s for s in outfit.garments if s.name == g.name)
+            if outfit.sewn or spec.template in ("trousers", "skirt"):
+                waist = g.loops["waist"]
+                assert len(waist) >= 20 and np.array_equal(g.pinned, waist), f"{name}/{g.name}"
+                wanted = any(s.elastic.get("waist", False) for s in outfit.garments)
+                assert ("waist" in g.elastic) == wanted, f"{name}/{g.name}"
+                if outfit.sewn:
+                    sewn_elastic[wanted] += 1
+            else:
+                assert g.pinned is None or len(g.pinned) == 0, f"{name}/{g.name}"
+    assert sewn_elastic[True] and sewn_elastic[False], sewn_elastic
+
+
 def _scale(a: np.ndarray, b: np.ndarray, faces: np.ndarray) -> np.ndarray:
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     la = np.linalg.norm(a[e[:, 1]] - a[e[:, 0]], axis=1)

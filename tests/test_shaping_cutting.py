@@ -293,6 +293,16 @@ def test_sewing(tpl, bodies, gender, kind, lower):
     assert out.name == kind and out.category == "full"
     assert check_template(out, body=bodies[gender]) == []
     assert "waist" not in out.loops and "neck" in out.loops
+    # The lower garment's waistband survives as a closed seam path: the same vertices, now
+    # interior (every edge of the ring has two faces), so the outfit can attach it to the body.
+    seam = out.paths["waist"]
+    np.testing.assert_allclose(
+        np.sort(out.vertices[seam][:, 2]), np.sort(low.vertices[low.loops["waist"]][:, 2])
+    )
+    edges, counts, _ = edge_table(out.faces)
+    ring = {tuple(sorted(p)) for p in zip(seam, np.roll(seam, -1), strict=True)}
+    two_faced = {tuple(e) for e, c in zip(edges.tolist(), counts, strict=True) if c == 2}
+    assert ring <= two_faced
     assert set(out.region_names) >= {"torso", "straps"}
 
 

@@ -289,12 +289,16 @@ def make_outfit(
         garment = to_garment(t, spec.fabric, spec.name)
         garment.vertices = start
         garment.rest_vertices = rest
+        if outfit.sewn and "waist" in t.paths:
+            # The sewn-in waistband of the lower garment: attached and (when sampled) elastic
+            # like the waist of the lower garment it was made from.
+            garment.loops["waist"] = np.asarray(t.paths["waist"])
         garment.elastic = tuple(
             r for r, on in sorted(spec.elastic.items()) if on and r in garment.loops
         )
         garment.tightness = tuple(outfit.tightness)
         garment.layer = spec.layer
-        if spec.template in LOWER_TEMPLATES and not outfit.sewn and "waist" in garment.loops:
+        if (spec.template in LOWER_TEMPLATES or outfit.sewn) and "waist" in garment.loops:
             garment.pinned = np.asarray(garment.loops["waist"])
         garment.meta = {
             "template": spec.template,

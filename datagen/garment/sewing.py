@@ -157,7 +157,8 @@ def _orient_like(loop: np.ndarray, points: np.ndarray, axis_dir: np.ndarray) -> 
 def sew(upper: GarmentTemplate, lower: GarmentTemplate, kind: str) -> GarmentTemplate:
     """One full-body garment: the upper garment's torso is trimmed to end a row above the lower
     garment's waist, and its hem loop is stitched to the waist loop by a band of triangles (with
-    intermediate rows when the two loops are far apart).
+    intermediate rows when the two loops are far apart). The lower garment's waist loop becomes
+    the closed path `paths["waist"]` along the seam.
 
     `kind` is "jumpsuit" (upper + trousers) or "dress" (upper + skirt). Sew before cutting the
     upper's torso: an upper whose hem already ends above the lower's waist cannot be stitched.
@@ -295,7 +296,9 @@ def sew(upper: GarmentTemplate, lower: GarmentTemplate, kind: str) -> GarmentTem
                 np.full(n_new, up.panel[hem[0]], dtype=np.int16),
             ]
         ).astype(np.int16)
-    paths = {}
+    # The lower garment's waistband is now a seam inside the garment, not a boundary loop; it
+    # stays as a closed path so the fitted garment can attach it to the body and make it elastic.
+    paths = {"waist": wst.copy()}
     meta = {
         "template": kind,
         "parts": [up.meta.get("template", up.name), lo.meta.get("template", lo.name)],
