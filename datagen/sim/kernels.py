@@ -183,6 +183,7 @@ def spring_delta(
     w: F1,
     springs: I2,
     rest: F1,
+    limit: F1,
     comp_t: F1,
     comp_c: F1,
     beta: F1,
@@ -190,7 +191,9 @@ def spring_delta(
     e: ti.i32,
     h: REAL,
 ) -> VEC4:
-    """XPBD update of spring e: (dlambda * n, dlambda) with n from x_i to x_j."""
+    """XPBD update of spring e: (displacement along n, dlambda) with n from x_i to x_j. Past
+    its limit length the spring is inextensible: the displacement also removes the excess
+    (strain limiting; the multiplier keeps only the compliant part)."""
     i = springs[e][0]
     j = springs[e][1]
     out = VEC4(0.0)
@@ -207,7 +210,11 @@ def spring_delta(
         gamma = beta[e] / h
         rate = n.dot((x[j] - xp[j]) - (x[i] - xp[i]))
         dl = (-c - alpha * lam[e] - gamma * rate) / ((1.0 + gamma) * wsum + alpha)
-        out = VEC4(dl * n, dl)
+        move = dl
+        after = length + wsum * dl
+        if after > limit[e]:
+            move += (limit[e] - after) / wsum
+        out = VEC4(move * n, dl)
     return out
 
 
@@ -219,6 +226,7 @@ def spring_gs_one(
     w: F1,
     springs: I2,
     rest: F1,
+    limit: F1,
     comp_t: F1,
     comp_c: F1,
     beta: F1,
@@ -226,7 +234,7 @@ def spring_gs_one(
     h: REAL,
     omega: REAL,
 ):
-    r = omega * spring_delta(x, xp, w, springs, rest, comp_t, comp_c, beta, lam, e, h)
+    r = omega * spring_delta(x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, e, h)
     lam[e] += r[3]
     i = springs[e][0]
     j = springs[e][1]
@@ -242,6 +250,7 @@ def springs_gauss_seidel(
     w: F1,
     springs: I2,
     rest: F1,
+    limit: F1,
     comp_t: F1,
     comp_c: F1,
     beta: F1,
@@ -256,7 +265,7 @@ def springs_gauss_seidel(
         e = k
         if reverse != 0:
             e = n_springs - 1 - k
-        spring_gs_one(e, x, xp, w, springs, rest, comp_t, comp_c, beta, lam, h, omega)
+        spring_gs_one(e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, h, omega)
 
 
 @ti.func
@@ -339,6 +348,7 @@ def springs_jacobi(
     w: F1,
     springs: I2,
     rest: F1,
+    limit: F1,
     comp_t: F1,
     comp_c: F1,
     beta: F1,
@@ -347,7 +357,7 @@ def springs_jacobi(
     h: REAL,
 ):
     for e in range(springs.shape[0]):
-        r = spring_delta(x, xp, w, springs, rest, comp_t, comp_c, beta, lam, e, h)
+        r = spring_delta(x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, e, h)
         lam[e] += r[3]
         out[e] = vec3(r[0], r[1], r[2])
 
@@ -863,6 +873,7 @@ def xpbd_frame(
     drag: F1,
     springs: I2,
     rest: F1,
+    limit: F1,
     comp_t: F1,
     comp_c: F1,
     beta: F1,
@@ -972,7 +983,9 @@ def xpbd_frame(
                     e = lo + m
                     if reverse != 0:
                         e = hi - 1 - m
-                    spring_gs_one(e, x, xp, w, springs, rest, comp_t, comp_c, beta, lam, h, omega)
+                    spring_gs_one(
+                        e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, h, omega
+                    )
             nb = n_bends  # bending: the first sweep only (see XPBDSolver.substep)
             if it > 0:
                 nb = 0

@@ -44,6 +44,12 @@ DEGENERATE_FRACTION = 0.2
 # max_strain in a frame (99.9 % within it). The simulator redoes frames over it; the hard cases
 # and validation judge by it.
 STRAIN_SHARE_MAX = 0.001
+# Woven and knitted fabrics stiffen sharply once their yarns straighten; the linear springs of
+# Blender's presets do not. The xpbd solver therefore holds a fabric spring inextensible past
+# this fraction of its fabric's max_strain (strain limiting, as in Provot 1995), below the QA
+# bound so that the bound measures how well the limit held.
+STRAIN_LIMIT_FRACTION = 0.9
+NO_LIMIT = 1e6  # m: the limit length of springs that have none
 
 
 @dataclass
@@ -88,6 +94,13 @@ class ClothModel:
         """(E,) bool: the stretch and shear springs whose strain the QA measures (seams and
         elastic bands, meant to be stretched, excluded)."""
         return np.isin(self.spring_kind, (STRUCTURAL, SHEAR)) & ~self.spring_elastic
+
+    @functools.cached_property
+    def limit_length(self) -> np.ndarray:
+        """(E,) m: the length past which a fabric spring is held inextensible by the xpbd
+        solver (STRAIN_LIMIT_FRACTION of its max_strain); seams and elastic bands have no limit."""
+        limit = self.rest_length + STRAIN_LIMIT_FRACTION * self.max_strain * self.strain_length
+        return np.where(self.fabric_springs, limit, NO_LIMIT)
 
     @property
     def inv_mass(self) -> np.ndarray:

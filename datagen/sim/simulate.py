@@ -331,9 +331,11 @@ class _Simulation:
         trips (up to MAX_RETRIES times, then the sequence is rejected) or, when `refine`, when
         more edges than STRAIN_SHARE_MAX end beyond their fabric's strain bound (up to
         `strain_refinements` times, then the frame is kept: strain is a quality figure, not a
-        failure). A refinement that removes less than a fifth of the over-strained edges
-        shows strain that substeps do not resolve (a garment made smaller than its body):
-        refinement then rests for REFINE_REST frames."""
+        failure). When even the last refinement removes less than a fifth of the
+        over-strained edges, substeps do not resolve this strain (a garment made smaller than
+        its body): refinement then rests for REFINE_REST frames. (The first doubling alone can
+        help little where the fourfold one helps a lot: a leather trouser leg swung in a dance
+        went from 2.5 % of its edges over the bound to 0.06 % at 4x.)"""
         solver = self.solver
         x0, v0 = solver.get_state()
         tri0 = solver.tri.to_numpy()
@@ -345,17 +347,19 @@ class _Simulation:
         level = 0
         current = solver
         stable: tuple[int, object] | None = None  # the last stable run: (level, solver)
-        share = None
+        first = None  # the share over the bound before any refinement
         while True:
             if reason is None:
                 stable = (level, current)
-                if level >= limit:
+                if limit == 0:
                     break
-                before, share = share, self._over_strain(current)
+                share = self._over_strain(current)
+                first = share if first is None else first
                 if share <= STRAIN_SHARE_MAX:
                     break
-                if before is not None and share > 0.8 * before:
-                    self.refine_rest = REFINE_REST
+                if level >= limit:
+                    if share > 0.8 * first:
+                        self.refine_rest = REFINE_REST
                     break
                 self.strain_refinements += 1
             elif stable is not None:  # a refinement went unstable: keep the stable run

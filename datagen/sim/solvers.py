@@ -61,6 +61,7 @@ class _SpringSet:
         self.count = int(select.sum())
         self.springs = _nd(ti.math.ivec2, model.springs[select].astype(np.int32))
         self.rest = _nd(REAL, model.rest_length[select].astype(NP_REAL))
+        self.limit = _nd(REAL, model.limit_length[select].astype(NP_REAL))
         self.k_t = _nd(REAL, model.k_tension[select].astype(NP_REAL))
         self.k_c = _nd(REAL, model.k_compression[select].astype(NP_REAL))
         self.comp_t = _nd(REAL, (1.0 / model.k_tension[select]).astype(NP_REAL))
@@ -346,6 +347,7 @@ class XPBDSolver(ClothSolver):
                 lo += s.count
             self.f_springs = _nd(ti.math.ivec2, springs)
             self.f_rest = _nd(REAL, cat("rest", NP_REAL))
+            self.f_limit = _nd(REAL, cat("limit", NP_REAL))
             self.f_comp_t = _nd(REAL, cat("comp_t", NP_REAL))
             self.f_comp_c = _nd(REAL, cat("comp_c", NP_REAL))
             self.f_beta = _nd(REAL, cat("beta", NP_REAL))
@@ -354,9 +356,10 @@ class XPBDSolver(ClothSolver):
             self.f_nsets = len(ranges)
         else:
             self.f_springs = _nd(ti.math.ivec2, np.zeros((1, 2), np.int32))
-            self.f_rest = self.f_comp_t = self.f_comp_c = self.f_beta = self.f_lam = _nd(
+            self.f_rest = self.f_limit = self.f_comp_t = self.f_comp_c = self.f_beta = _nd(
                 REAL, np.zeros(1, NP_REAL)
             )
+            self.f_lam = _nd(REAL, np.zeros(1, NP_REAL))
             self.f_ranges = _nd(ti.math.ivec2, np.zeros((1, 2), np.int32))
             self.f_nsets = 0
         if not self.n_bends:
@@ -417,7 +420,8 @@ class XPBDSolver(ClothSolver):
         self.Q.from_numpy(Q)
         K.xpbd_frame(
             self.x, self.xp, self.v, self.w, self.drag,
-            self.f_springs, self.f_rest, self.f_comp_t, self.f_comp_c, self.f_beta, self.f_lam,
+            self.f_springs, self.f_rest, self.f_limit, self.f_comp_t, self.f_comp_c, self.f_beta,
+            self.f_lam,
             self.f_ranges,
             self.bends, self.kw, self.bcomp, self.bbeta, self.lam_b,
             self.pin_idx, self.pin_t0, self.pin_t1,
@@ -532,6 +536,7 @@ class XPBDSolver(ClothSolver):
                         self.w,
                         s.springs,
                         s.rest,
+                        s.limit,
                         s.comp_t,
                         s.comp_c,
                         s.beta,
@@ -583,6 +588,7 @@ class XPBDSolver(ClothSolver):
                 self.w,
                 s.springs,
                 s.rest,
+                s.limit,
                 s.comp_t,
                 s.comp_c,
                 s.beta,
