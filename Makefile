@@ -21,7 +21,8 @@ install: $(STAMP)
 dataset: install
 	$(VENV)/bin/datagen dataset --pipeline $(PIPELINE) --out $(OUT)
 	# QA limits (strain over the fabric bound, deep penetration) are reported as warnings: the
-	# default preset exceeds the strain bound on some sequences (docs/benchmarks.md, hard cases).
+	# default preset exceeds the strain bound on hard motions (docs/benchmarks.md, hard cases),
+	# here on one sequence of twelve (7-000000, a run in silk trousers).
 	$(VENV)/bin/datagen validate --qa warning $(OUT)
 
 lint: install
