@@ -298,7 +298,8 @@ def make_outfit(
         )
         garment.tightness = tuple(outfit.tightness)
         garment.layer = spec.layer
-        if (spec.template in LOWER_TEMPLATES or outfit.sewn) and "waist" in garment.loops:
+        # A waistband holds what hangs from the waist: lower garments and sewn full-body ones.
+        if t.category in ("lower", "full") and "waist" in garment.loops:
             garment.pinned = np.asarray(garment.loops["waist"])
         garment.meta = {
             "template": spec.template,
