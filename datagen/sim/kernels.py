@@ -177,6 +177,25 @@ def clear_vec3(a: V3):
 
 
 @ti.func
+def swept(m: ti.i32, lo: ti.i32, hi: ti.i32, reverse: ti.i32) -> ti.i32:
+    """The m-th element of the range [lo, hi) in sweep order (backwards when reverse): sweeps
+    alternate direction so Gauss-Seidel does not favour one end of the cloth."""
+    e = lo + m
+    if reverse != 0:
+        e = hi - 1 - m
+    return e
+
+
+@ti.func
+def move_ends(e: ti.i32, x: V3, w: F1, springs: I2, dx: vec3):
+    """Spring e's ends move apart by dx (along j - i), each by its inverse mass."""
+    i = springs[e][0]
+    j = springs[e][1]
+    x[i] -= w[i] * dx
+    x[j] += w[j] * dx
+
+
+@ti.func
 def spring_delta(
     x: V3,
     xp: V3,
@@ -236,11 +255,7 @@ def spring_gs_one(
 ):
     r = omega * spring_delta(x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, e, h)
     lam[e] += r[3]
-    i = springs[e][0]
-    j = springs[e][1]
-    dx = vec3(r[0], r[1], r[2])
-    x[i] -= w[i] * dx
-    x[j] += w[j] * dx
+    move_ends(e, x, w, springs, vec3(r[0], r[1], r[2]))
 
 
 @ti.func
@@ -260,11 +275,7 @@ def spring_limit_delta(x: V3, w: F1, springs: I2, limit: F1, e: ti.i32) -> vec3:
 
 @ti.func
 def spring_limit_one(e: ti.i32, x: V3, w: F1, springs: I2, limit: F1):
-    dx = spring_limit_delta(x, w, springs, limit, e)
-    i = springs[e][0]
-    j = springs[e][1]
-    x[i] -= w[i] * dx
-    x[j] += w[j] * dx
+    move_ends(e, x, w, springs, spring_limit_delta(x, w, springs, limit, e))
 
 
 @ti.kernel
@@ -274,10 +285,7 @@ def springs_limit_gauss_seidel(x: V3, w: F1, springs: I2, limit: F1, reverse: ti
     n_springs = springs.shape[0]
     ti.loop_config(serialize=True)
     for k in range(n_springs):
-        e = k
-        if reverse != 0:
-            e = n_springs - 1 - k
-        spring_limit_one(e, x, w, springs, limit)
+        spring_limit_one(swept(k, 0, n_springs, reverse), x, w, springs, limit)
 
 
 # A spring this close to its limit length is taut: the fabric's tension then exceeds what
@@ -332,9 +340,7 @@ def springs_gauss_seidel(
     n_springs = springs.shape[0]
     ti.loop_config(serialize=True)
     for k in range(n_springs):
-        e = k
-        if reverse != 0:
-            e = n_springs - 1 - k
+        e = swept(k, 0, n_springs, reverse)
         spring_gs_one(e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, h, omega)
 
 
@@ -405,10 +411,8 @@ def bends_gauss_seidel(
     n_bends = bends.shape[0]
     ti.loop_config(serialize=True)
     for m in range(n_bends):
-        b = m
-        if reverse != 0:
-            b = n_bends - 1 - m
-        bend_gs_one(b, x, xp, w, bends, kw, comp, beta, lam_b, h, omega)
+        bend_gs_one(swept(m, 0, n_bends, reverse), x, xp, w, bends, kw, comp, beta, lam_b, h,
+                    omega)
 
 
 @ti.kernel
@@ -1076,9 +1080,7 @@ def xpbd_frame(
                 lo = set_ranges[si][0]
                 hi = set_ranges[si][1]
                 for m in range(hi - lo):
-                    e = lo + m
-                    if reverse != 0:
-                        e = hi - 1 - m
+                    e = swept(m, lo, hi, reverse)
                     spring_gs_one(
                         e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, h, omega
                     )
@@ -1086,9 +1088,7 @@ def xpbd_frame(
             if it > 0:
                 nb = 0
             for m in range(nb):
-                b = m
-                if reverse != 0:
-                    b = nb - 1 - m
+                b = swept(m, 0, nb, reverse)
                 bend_gs_one(b, x, xp, w, bends, kw, bcomp, bbeta, lam_b, h, omega)
             for p in range(n_pins):
                 attach_one(p, x, w, pin_idx, pin_t0, pin_t1, pin_comp, pin_lam, s1, h)
@@ -1162,10 +1162,7 @@ def xpbd_frame(
                 lo = set_ranges[si][0]
                 hi = set_ranges[si][1]
                 for m in range(hi - lo):
-                    e = lo + m
-                    if reverse != 0:
-                        e = hi - 1 - m
-                    spring_limit_one(e, x, w, springs, limit)
+                    spring_limit_one(swept(m, lo, hi, reverse), x, w, springs, limit)
         for i in range(n):
             finish_one(i, x, xp, v, w, contact_n, contact_v, h)
 

@@ -31,7 +31,7 @@ QUALITY_PRESETS: dict[str, dict[str, tuple[int, int]]] = {
 }
 MAX_RETRIES = 2
 REFINE_REST = 10  # frames without strain refinement after one that did not help
-REFINE_ITERATIONS = 4  # xpbd: iterations multiply by this at each strain refinement
+REFINE_ITERATIONS = 4  # xpbd: the iterations of a strain refinement, times the preset's
 SPEED_LIMIT = 15.0  # m/s: a cloth vertex faster than this and 3x the body's fastest is runaway
 
 
@@ -340,9 +340,9 @@ class _Simulation:
         which more substeps barely help while each substep's contacts and friction undo part
         of it; its second refinement also has 4x the substeps, which stiff fabric on a fast limb
         needs (a leather trouser leg swung in a dance). The force-based solvers refine with 2x,
-        then 4x the substeps. When even the last refinement
-        removes less than a fifth of the over-strained edges, refinement does not resolve
-        this strain (a garment made smaller than its body) and rests for REFINE_REST frames."""
+        then 4x the substeps. When even the last refinement removes less than a fifth of the
+        over-strained edges, refinement does not resolve this strain (a garment made smaller
+        than its body) and rests for REFINE_REST frames."""
         solver = self.solver
         x0, v0 = solver.get_state()
         tri0 = solver.tri.to_numpy()
@@ -400,13 +400,11 @@ class _Simulation:
         """(substeps, iterations) after `retry` stability doublings and `refined` strain
         refinements."""
         sub, it = self.substeps * 2**retry, self.iterations
-        if self.options.solver == "xpbd" and refined:
-            it *= REFINE_ITERATIONS
-            if refined > 1:
-                sub *= 2**refined
-        else:
-            sub *= 2**refined
-        return sub, it
+        if self.options.solver != "xpbd":
+            return sub * 2**refined, it
+        if refined == 0:
+            return sub, it
+        return (sub * 2**refined if refined > 1 else sub), it * REFINE_ITERATIONS
 
     def _refined_solver(self, retry: int, refined: int):
         steps = self._steps(retry, refined)

@@ -133,6 +133,7 @@ class ClothSolver:
             self.lam_b = ti.ndarray(VEC3, self.n_bends)
             self.b_out = ti.ndarray(VEC3, self.n_bends)
         self.n_pins = len(model.pinned) if effects.pins else 0
+        self.n_soft_pins = 0
         if self.n_pins:
             self.pin_idx = _nd(ti.i32, model.pinned.astype(np.int32))
             self.pin_t0 = ti.ndarray(VEC3, self.n_pins)
@@ -140,7 +141,7 @@ class ClothSolver:
             comp = model.pin_compliance if self.soft_pins else np.zeros(self.n_pins)
             self.pin_comp = _nd(REAL, comp.astype(NP_REAL))
             self.pin_lam = ti.ndarray(VEC3, self.n_pins)
-            self.n_soft_pins = int(np.count_nonzero(comp))
+            self.n_soft_pins = int(np.count_nonzero(comp))  # attachment constraints to solve
         self.costs: dict[str, float] = defaultdict(float)
         self.launches: dict[str, int] = defaultdict(int)
         self._sweep = 0
@@ -580,7 +581,7 @@ class XPBDSolver(ClothSolver):
                     )
             else:
                 self._jacobi_iteration(h, bend)
-            if self.n_pins and self.n_soft_pins:
+            if self.n_soft_pins:
                 self._run("pins", K.attach, self.x, self.w, self.pin_idx, self.pin_t0,
                           self.pin_t1, self.pin_comp, self.pin_lam, s1, h)
         contacts = (collider is not None and e.body_collision) or self.use_layers
@@ -590,7 +591,7 @@ class XPBDSolver(ClothSolver):
                 self._run("friction", K.release_taut, self.x, s.springs, s.limit, self.grip)
         self._collide(collider, s0, s1, h)
         self._cloth_collisions(h, s0, s1)
-        if (collider is not None and e.body_collision) or self.use_layers or self.use_self:
+        if contacts or self.use_self:
             self._limit_after_contacts(limit_reverse)
         self._run(
             "integration",
@@ -607,21 +608,19 @@ class XPBDSolver(ClothSolver):
     def _limit_after_contacts(self, reverse: int) -> None:
         """Strain limiting once more after the contacts: friction carries cloth with the skin,
         which stretches at the joints, and would undo what the iterations enforced."""
-        for s in self.sets.values():
-            if self.gauss_seidel:
+        if self.gauss_seidel:
+            for s in self.sets.values():
                 self._run("stretch", K.springs_limit_gauss_seidel, self.x, self.w,
                           s.springs, s.limit, reverse)
-            else:
-                self._run("stretch", K.springs_limit_jacobi, self.x, self.w, s.springs,
-                          s.limit, s.out)
-        if not self.gauss_seidel:
-            names = list(self.sets)
-            for name in names:
-                ptr, ref = self.jacobi[name]
-                empty, zero = self.jacobi_empty
-                self._run("stretch", K.apply_jacobi, self.x, self.w, ptr, ref,
-                          self.sets[name].out, empty, zero, zero, self.sets[name].out,
-                          _dummy_vec4(), self.settings.jacobi_omega)
+            return
+        for s in self.sets.values():
+            self._run("stretch", K.springs_limit_jacobi, self.x, self.w, s.springs, s.limit,
+                      s.out)
+        empty, zero = self.jacobi_empty  # no bending terms in this gather
+        for name, s in self.sets.items():
+            ptr, ref = self.jacobi[name]
+            self._run("stretch", K.apply_jacobi, self.x, self.w, ptr, ref, s.out, empty, zero,
+                      zero, s.out, _dummy_vec4(), self.settings.jacobi_omega)
 
     def _jacobi_iteration(self, h: float, bend: bool) -> None:
         omega = self.settings.jacobi_omega
