@@ -156,9 +156,6 @@ class Garment:
     region_names: tuple[str, ...] = ()
     elastic: tuple[str, ...] = ()  # loop roles with elastic bands
     pinned: np.ndarray | None = None  # vertex ids attached to the body (e.g. a waistband)
-    # N/m holding each pinned vertex to its point on the body: a waistband grips and gives a
-    # little under a strong pull (the xpbd solver); None holds it rigidly.
-    pin_stiffness: float | None = None
     tightness: tuple[float, float] = (0.0, 0.0)
     layer: int = 0  # 0 = innermost
     seams: np.ndarray | None = None  # (K, 2) vertex pairs pulled together (panels being sewn)

@@ -31,7 +31,6 @@ def fitted_sidecar(g: Garment) -> dict:
         "tightness": [float(t) for t in g.tightness],
         "elastic": list(g.elastic),
         "pinned": [] if g.pinned is None else [int(i) for i in g.pinned],
-        "pin_stiffness": g.pin_stiffness,
         "loops": {role: [int(i) for i in ids] for role, ids in sorted(g.loops.items())},
         "region_names": list(g.region_names),
         "regions": [] if g.regions is None else [int(r) for r in g.regions],

@@ -31,10 +31,6 @@ LOWER_TEMPLATES = ("trousers", "skirt")
 FULL_BODY = {"jumpsuit": "trousers", "dress": "skirt"}  # sewn from a top and this
 FABRICS = ("cotton", "silk", "denim", "leather")
 UPPER_FABRICS = ("cotton", "silk")
-# N/m with which a waistband holds its garment to the body, over the whole band: the garment's
-# weight (a few N) sags it about a millimetre, while a pull the strain-limited fabric cannot
-# follow (a knee lifted high in trousers) lets it slide a few centimetres, as a real one does.
-WAIST_HOLD_STIFFNESS = 2000.0
 ELASTIC_ROLES = ("sleeve_l_end", "sleeve_r_end", "leg_l_end", "leg_r_end")
 
 
@@ -305,7 +301,6 @@ def make_outfit(
         # A waistband holds what hangs from the waist: lower garments and sewn full-body ones.
         if t.category in ("lower", "full") and "waist" in garment.loops:
             garment.pinned = np.asarray(garment.loops["waist"])
-            garment.pin_stiffness = WAIST_HOLD_STIFFNESS / len(garment.pinned)
         garment.meta = {
             "template": spec.template,
             "variant": spec.variant,

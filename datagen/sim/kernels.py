@@ -177,25 +177,6 @@ def clear_vec3(a: V3):
 
 
 @ti.func
-def swept(m: ti.i32, lo: ti.i32, hi: ti.i32, reverse: ti.i32) -> ti.i32:
-    """The m-th element of the range [lo, hi) in sweep order (backwards when reverse): sweeps
-    alternate direction so Gauss-Seidel does not favour one end of the cloth."""
-    e = lo + m
-    if reverse != 0:
-        e = hi - 1 - m
-    return e
-
-
-@ti.func
-def move_ends(e: ti.i32, x: V3, w: F1, springs: I2, dx: vec3):
-    """Spring e's ends move apart by dx (along j - i), each by its inverse mass."""
-    i = springs[e][0]
-    j = springs[e][1]
-    x[i] -= w[i] * dx
-    x[j] += w[j] * dx
-
-
-@ti.func
 def spring_delta(
     x: V3,
     xp: V3,
@@ -255,70 +236,11 @@ def spring_gs_one(
 ):
     r = omega * spring_delta(x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, e, h)
     lam[e] += r[3]
-    move_ends(e, x, w, springs, vec3(r[0], r[1], r[2]))
-
-
-@ti.func
-def spring_limit_delta(x: V3, w: F1, springs: I2, limit: F1, e: ti.i32) -> vec3:
-    """The move (along n, from x_i to x_j) that brings spring e back to its limit length, or
-    zero when it is within it."""
     i = springs[e][0]
     j = springs[e][1]
-    out = vec3(0.0)
-    wsum = w[i] + w[j]
-    d = x[j] - x[i]
-    length = d.norm()
-    if wsum > 0.0 and length > limit[e]:
-        out = ((limit[e] - length) / (wsum * length)) * d
-    return out
-
-
-@ti.func
-def spring_limit_one(e: ti.i32, x: V3, w: F1, springs: I2, limit: F1):
-    move_ends(e, x, w, springs, spring_limit_delta(x, w, springs, limit, e))
-
-
-@ti.kernel
-def springs_limit_gauss_seidel(x: V3, w: F1, springs: I2, limit: F1, reverse: ti.i32):
-    """Strain limiting after the contacts: friction carries cloth with the skin and would
-    otherwise undo the limit the constraint iterations enforced (skin stretches at joints)."""
-    n_springs = springs.shape[0]
-    ti.loop_config(serialize=True)
-    for k in range(n_springs):
-        spring_limit_one(swept(k, 0, n_springs, reverse), x, w, springs, limit)
-
-
-# A spring this close to its limit length is taut: the fabric's tension then exceeds what
-# static friction holds, and the cloth slides over the skin instead of being dragged along.
-TAUT_FRACTION = 0.98
-
-
-@ti.func
-def release_taut_one(e: ti.i32, x: V3, springs: I2, limit: F1, grip: F1):
-    i = springs[e][0]
-    j = springs[e][1]
-    if (x[j] - x[i]).norm() >= TAUT_FRACTION * limit[e]:
-        grip[i] = 0.0
-        grip[j] = 0.0
-
-
-@ti.kernel
-def copy_scalar(src: F1, dst: F1):
-    for i in src:
-        dst[i] = src[i]
-
-
-@ti.kernel
-def release_taut(x: V3, springs: I2, limit: F1, grip: F1):
-    """Friction off (grip 0) at both ends of every taut spring."""
-    for e in range(springs.shape[0]):
-        release_taut_one(e, x, springs, limit, grip)
-
-
-@ti.kernel
-def springs_limit_jacobi(x: V3, w: F1, springs: I2, limit: F1, out: V3):
-    for e in range(springs.shape[0]):
-        out[e] = spring_limit_delta(x, w, springs, limit, e)
+    dx = vec3(r[0], r[1], r[2])
+    x[i] -= w[i] * dx
+    x[j] += w[j] * dx
 
 
 @ti.kernel
@@ -340,7 +262,9 @@ def springs_gauss_seidel(
     n_springs = springs.shape[0]
     ti.loop_config(serialize=True)
     for k in range(n_springs):
-        e = swept(k, 0, n_springs, reverse)
+        e = k
+        if reverse != 0:
+            e = n_springs - 1 - k
         spring_gs_one(e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, h, omega)
 
 
@@ -411,8 +335,10 @@ def bends_gauss_seidel(
     n_bends = bends.shape[0]
     ti.loop_config(serialize=True)
     for m in range(n_bends):
-        bend_gs_one(swept(m, 0, n_bends, reverse), x, xp, w, bends, kw, comp, beta, lam_b, h,
-                    omega)
+        b = m
+        if reverse != 0:
+            b = n_bends - 1 - m
+        bend_gs_one(b, x, xp, w, bends, kw, comp, beta, lam_b, h, omega)
 
 
 @ti.kernel
@@ -535,30 +461,9 @@ def explicit_update(
 
 # -- pins --------------------------------------------------------------------------------------
 @ti.kernel
-def apply_pins(x: V3, pin_idx: I1, t0: V3, t1: V3, comp: F1, s: REAL):
-    """Rigid pins (compliance 0) onto their targets; soft ones are constraints (attach_one)."""
+def apply_pins(x: V3, pin_idx: I1, t0: V3, t1: V3, s: REAL):
     for p in pin_idx:
-        if comp[p] == 0.0:
-            x[pin_idx[p]] = lerp3(t0[p], t1[p], s)
-
-
-@ti.func
-def attach_one(p: ti.i32, x: V3, w: F1, pin_idx: I1, t0: V3, t1: V3, comp: F1, lam: V3,
-               s: REAL, h: REAL):
-    """XPBD zero-length spring of compliance comp[p] from pinned vertex to its target."""
-    i = pin_idx[p]
-    if comp[p] > 0.0 and w[i] > 0.0:
-        alpha = comp[p] / (h * h)
-        c = x[i] - lerp3(t0[p], t1[p], s)
-        dl = (-c - alpha * lam[p]) / (w[i] + alpha)
-        lam[p] += dl
-        x[i] += w[i] * dl
-
-
-@ti.kernel
-def attach(x: V3, w: F1, pin_idx: I1, t0: V3, t1: V3, comp: F1, lam: V3, s: REAL, h: REAL):
-    for p in pin_idx:
-        attach_one(p, x, w, pin_idx, t0, t1, comp, lam, s, h)
+        x[pin_idx[p]] = lerp3(t0[p], t1[p], s)
 
 
 # -- body collision ----------------------------------------------------------------------------
@@ -982,8 +887,6 @@ def xpbd_frame(
     pin_idx: I1,
     pin_t0: V3,
     pin_t1: V3,
-    pin_comp: F1,
-    pin_lam: V3,
     tri: I1,
     faces: I3,
     fadj: I3,
@@ -996,7 +899,6 @@ def xpbd_frame(
     ns1: V3,
     thickness: F1,
     friction: F1,
-    grip: F1,
     contact_n: V3,
     contact_v: V3,
     starts: I1,
@@ -1067,9 +969,7 @@ def xpbd_frame(
         # Pinned vertices reach their targets before the constraints, which then pull the
         # fabric after them (moved afterwards, they would leave the edges next to them stretched).
         for p in range(n_pins):
-            pin_lam[p] = vec3(0.0)
-            if pin_comp[p] == 0.0:
-                x[pin_idx[p]] = lerp3(pin_t0[p], pin_t1[p], s1)
+            x[pin_idx[p]] = lerp3(pin_t0[p], pin_t1[p], s1)
         for e in range(springs.shape[0]):
             lam[e] = 0.0
         for b in range(n_bends):
@@ -1080,7 +980,9 @@ def xpbd_frame(
                 lo = set_ranges[si][0]
                 hi = set_ranges[si][1]
                 for m in range(hi - lo):
-                    e = swept(m, lo, hi, reverse)
+                    e = lo + m
+                    if reverse != 0:
+                        e = hi - 1 - m
                     spring_gs_one(
                         e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, h, omega
                     )
@@ -1088,15 +990,10 @@ def xpbd_frame(
             if it > 0:
                 nb = 0
             for m in range(nb):
-                b = swept(m, 0, nb, reverse)
+                b = m
+                if reverse != 0:
+                    b = nb - 1 - m
                 bend_gs_one(b, x, xp, w, bends, kw, bcomp, bbeta, lam_b, h, omega)
-            for p in range(n_pins):
-                attach_one(p, x, w, pin_idx, pin_t0, pin_t1, pin_comp, pin_lam, s1, h)
-        if ti.static(use_friction and (use_collision or use_layers)):
-            for i in range(n):
-                grip[i] = friction[i]
-            for e in range(springs.shape[0]):
-                release_taut_one(e, x, springs, limit, grip)
         if ti.static(use_collision):
             # The body at this substep's start and end, once, instead of per cloth vertex.
             for j in range(b0.shape[0]):
@@ -1127,7 +1024,7 @@ def xpbd_frame(
                     0.0,
                     1.0,
                     thickness,
-                    grip,
+                    friction,
                     recover,
                     2.0 * cell,
                     contact_n,
@@ -1145,7 +1042,7 @@ def xpbd_frame(
             for i in range(n):
                 collide_one(
                     i, x, xp, l_w, l_tri, l_faces, l_fadj, l_b0, l_b1, l_n0, l_n1, s0, s1,
-                    thickness, grip, recover, 2.0 * l_cell, contact_n, contact_v, h,
+                    thickness, friction, recover, 2.0 * l_cell, contact_n, contact_v, h,
                     use_friction,
                 )
         if ti.static(use_self):
@@ -1155,14 +1052,6 @@ def xpbd_frame(
                     i, x, w, s_owner, s_rest, s_starts, s_items, s_inv_cell, s_mask, s_radius,
                     s_min_rest,
                 )
-        if ti.static(use_collision or use_layers or use_self):
-            # Strain limiting once more after the contacts (see springs_limit_gauss_seidel).
-            reverse = ((sweep0 + k * n_iter) // n_iter) % 2  # alternates by substep
-            for si in range(n_sets):
-                lo = set_ranges[si][0]
-                hi = set_ranges[si][1]
-                for m in range(hi - lo):
-                    spring_limit_one(swept(m, lo, hi, reverse), x, w, springs, limit)
         for i in range(n):
             finish_one(i, x, xp, v, w, contact_n, contact_v, h)
 

@@ -80,7 +80,6 @@ class ClothModel:
     thickness: np.ndarray  # (V,) m
     max_strain: np.ndarray  # (E,)
     pinned: np.ndarray  # (P,) vertex ids attached to the body
-    pin_compliance: np.ndarray  # (P,) m/N of each attachment; 0: rigid
     fabrics: list[Fabric]
     layers: list[int] = None  # layer of each garment (0 = innermost)
     strain_length: np.ndarray = None  # (E,) the length strain is measured against (floored)
@@ -200,7 +199,7 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
     xs, rests, faces, masses, gids, names, granges, franges = [], [], [], [], [], [], [], []
     springs, rest_len, kt, kc, beta, kind, elastic, maxs = [], [], [], [], [], [], [], []
     bends, bweights, bstiff, bbeta = [], [], [], []
-    drag, fric, thick, pinned, pin_comp, fabrics = [], [], [], [], [], []
+    drag, fric, thick, pinned, fabrics = [], [], [], [], []
     strain_lens: list[np.ndarray] = []
     degenerate: dict[str, int] = {}
     offset = 0
@@ -282,10 +281,6 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
         thick.append(np.full(n, fabric.thickness))
         if garment.pinned is not None and len(garment.pinned):
             pinned.append(np.asarray(garment.pinned, dtype=np.int64) + offset)
-            k = garment.pin_stiffness
-            if k is not None and not (np.isfinite(k) and k > 0):
-                raise InputError(garment.name, "pin_stiffness", "a positive N/m, or None", k)
-            pin_comp.append(np.full(len(garment.pinned), 0.0 if k is None else 1.0 / k))
         fabrics.append(fabric)
         offset += n
         face_offset += len(f)
@@ -320,7 +315,6 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
         thickness=np.concatenate(thick),
         max_strain=np.concatenate(maxs),
         pinned=np.concatenate(pinned) if pinned else np.zeros(0, dtype=np.int64),
-        pin_compliance=np.concatenate(pin_comp) if pin_comp else np.zeros(0),
         fabrics=fabrics,
         layers=[g.layer for g, _ in garments],
         strain_length=np.concatenate(strain_lens),

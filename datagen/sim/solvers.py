@@ -75,10 +75,6 @@ class _SpringSet:
 class ClothSolver:
     """State and the parts every solver shares: external forces, pins, collision, timing."""
 
-    # Whether compliant pins (a waistband's grip) are constraints; solvers without them hold
-    # every pinned vertex rigidly.
-    soft_pins = False
-
     name = "base"
 
     def __init__(self, model: ClothModel, effects: Effects, settings: SolverSettings) -> None:
@@ -92,16 +88,13 @@ class ClothSolver:
         self.xp = _nd(VEC3, model.x0.astype(NP_REAL))
         self.v = _nd(VEC3, np.zeros((n, 3), NP_REAL))
         w = model.inv_mass.astype(NP_REAL)
-        soft = model.pinned[model.pin_compliance > 0] if self.soft_pins else []
         if not effects.pins:
             w = (1.0 / model.mass).astype(NP_REAL)
-        w[soft] = 1.0 / model.mass[soft]  # held by attachment constraints instead
         self.w_np = w
         self.w = _nd(REAL, w)
         self.drag = _nd(REAL, model.air_drag.astype(NP_REAL))
         self.thickness = _nd(REAL, model.thickness.astype(NP_REAL))
         self.friction = _nd(REAL, model.friction.astype(NP_REAL))
-        self.grip = _nd(REAL, model.friction.astype(NP_REAL))  # friction, less taut vertices
         self.tri = _nd(ti.i32, -np.ones(n, np.int32))
         self.guard = _nd(VEC4, fresh_guards(n))
         self.odo = 0.0  # metres the body's fastest vertex has travelled (see nearest_one)
@@ -133,15 +126,10 @@ class ClothSolver:
             self.lam_b = ti.ndarray(VEC3, self.n_bends)
             self.b_out = ti.ndarray(VEC3, self.n_bends)
         self.n_pins = len(model.pinned) if effects.pins else 0
-        self.n_soft_pins = 0
         if self.n_pins:
             self.pin_idx = _nd(ti.i32, model.pinned.astype(np.int32))
             self.pin_t0 = ti.ndarray(VEC3, self.n_pins)
             self.pin_t1 = ti.ndarray(VEC3, self.n_pins)
-            comp = model.pin_compliance if self.soft_pins else np.zeros(self.n_pins)
-            self.pin_comp = _nd(REAL, comp.astype(NP_REAL))
-            self.pin_lam = ti.ndarray(VEC3, self.n_pins)
-            self.n_soft_pins = int(np.count_nonzero(comp))  # attachment constraints to solve
         self.costs: dict[str, float] = defaultdict(float)
         self.launches: dict[str, int] = defaultdict(int)
         self._sweep = 0
@@ -232,7 +220,7 @@ class ClothSolver:
                       True, self.layer_guard, self.layer_odo + s1 * self.layer_travel)
             self._run("garment_collision", K.collide_body, self.x, self.xp, self.layer_w,
                       self.layer_tri, c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, s0, s1,
-                      self.thickness, self.grip, self.settings.recover_speed * h,
+                      self.thickness, self.friction, self.settings.recover_speed * h,
                       2.0 * c.cell, self.contact_n, self.contact_v, h, self.effects.friction)
         if self.use_self:
             inv = 1.0 / self.self_radius
@@ -263,8 +251,7 @@ class ClothSolver:
     # -- shared parts of a substep -----------------------------------------------------------
     def _pins(self, s1: float) -> None:
         if self.n_pins:
-            self._run("pins", K.apply_pins, self.x, self.pin_idx, self.pin_t0, self.pin_t1,
-                      self.pin_comp, s1)
+            self._run("pins", K.apply_pins, self.x, self.pin_idx, self.pin_t0, self.pin_t1, s1)
 
     def _collide(self, collider, s0: float, s1: float, h: float) -> None:
         self._run("body_collision", K.clear_contacts, self.contact_n, self.contact_v)
@@ -291,7 +278,7 @@ class ClothSolver:
             s0,
             s1,
             self.thickness,
-            self.grip,
+            self.friction,
             recover,
             2.0 * collider.cell,
             self.contact_n,
@@ -335,7 +322,6 @@ def _unelastic(model: ClothModel) -> ClothModel:
 
 class XPBDSolver(ClothSolver):
     name = "xpbd"
-    soft_pins = True
 
     def __init__(self, model, effects, settings) -> None:
         super().__init__(model, effects, settings)
@@ -383,8 +369,7 @@ class XPBDSolver(ClothSolver):
             self.lam_b = ti.ndarray(VEC3, 1)
         if not self.n_pins:
             self.pin_idx = _nd(ti.i32, np.zeros(1, np.int32))
-            self.pin_t0 = self.pin_t1 = self.pin_lam = ti.ndarray(VEC3, 1)
-            self.pin_comp = _nd(REAL, np.zeros(1, NP_REAL))
+            self.pin_t0 = self.pin_t1 = ti.ndarray(VEC3, 1)
         self._dummy_collider = None
         self.P = ti.ndarray(REAL, K.P_SIZE)
         self.Q = ti.ndarray(ti.i32, K.Q_SIZE)
@@ -439,9 +424,9 @@ class XPBDSolver(ClothSolver):
             self.f_lam,
             self.f_ranges,
             self.bends, self.kw, self.bcomp, self.bbeta, self.lam_b,
-            self.pin_idx, self.pin_t0, self.pin_t1, self.pin_comp, self.pin_lam,
+            self.pin_idx, self.pin_t0, self.pin_t1,
             self.tri, c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, c.bs0, c.bs1, c.ns1,
-            self.thickness, self.friction, self.grip, self.contact_n, self.contact_v,
+            self.thickness, self.friction, self.contact_n, self.contact_v,
             c.starts, c.items, self.guard,
             self.s_owner, self.s_rest, self.s_counts, self.s_starts, self.s_items,
             self.layer_w, self.layer_tri, self.layer_guard, lc.faces, lc.fadj, lc.b0, lc.b1,
@@ -531,13 +516,10 @@ class XPBDSolver(ClothSolver):
             e.air_drag or e.wind,
         )
         self._pins(s1)
-        if self.n_pins:
-            K.clear_vec3(self.pin_lam)
         for s in self.sets.values():
             s.lam.fill(0.0)
         if self.n_bends:
             K.clear_vec3(self.lam_b)
-        limit_reverse = (self._sweep // self.settings.iterations) % 2  # alternates by substep
         for it in range(self.settings.iterations):
             reverse = self._sweep % 2
             self._sweep += 1
@@ -581,18 +563,8 @@ class XPBDSolver(ClothSolver):
                     )
             else:
                 self._jacobi_iteration(h, bend)
-            if self.n_soft_pins:
-                self._run("pins", K.attach, self.x, self.w, self.pin_idx, self.pin_t0,
-                          self.pin_t1, self.pin_comp, self.pin_lam, s1, h)
-        contacts = (collider is not None and e.body_collision) or self.use_layers
-        if e.friction and contacts:
-            self._run("friction", K.copy_scalar, self.friction, self.grip)
-            for s in self.sets.values():
-                self._run("friction", K.release_taut, self.x, s.springs, s.limit, self.grip)
         self._collide(collider, s0, s1, h)
         self._cloth_collisions(h, s0, s1)
-        if contacts or self.use_self:
-            self._limit_after_contacts(limit_reverse)
         self._run(
             "integration",
             K.finish,
@@ -604,23 +576,6 @@ class XPBDSolver(ClothSolver):
             self.contact_v,
             h,
         )
-
-    def _limit_after_contacts(self, reverse: int) -> None:
-        """Strain limiting once more after the contacts: friction carries cloth with the skin,
-        which stretches at the joints, and would undo what the iterations enforced."""
-        if self.gauss_seidel:
-            for s in self.sets.values():
-                self._run("stretch", K.springs_limit_gauss_seidel, self.x, self.w,
-                          s.springs, s.limit, reverse)
-            return
-        for s in self.sets.values():
-            self._run("stretch", K.springs_limit_jacobi, self.x, self.w, s.springs, s.limit,
-                      s.out)
-        empty, zero = self.jacobi_empty  # no bending terms in this gather
-        for name, s in self.sets.items():
-            ptr, ref = self.jacobi[name]
-            self._run("stretch", K.apply_jacobi, self.x, self.w, ptr, ref, s.out, empty, zero,
-                      zero, s.out, _dummy_vec4(), self.settings.jacobi_omega)
 
     def _jacobi_iteration(self, h: float, bend: bool) -> None:
         omega = self.settings.jacobi_omega
