@@ -12,6 +12,7 @@ from pathlib import Path
 
 from datagen.config import check_range, from_mapping, load_yaml
 from datagen.errors import InputError
+from datagen.qa import QA_POLICIES
 
 
 @dataclass(frozen=True)
@@ -113,6 +114,9 @@ class SimulationConfig:
     effects: str | tuple[str, ...] = "auto"
     wind: tuple[float, float, float] | None = None
     settle_seconds: float = 0.5  # the outfit settles on the rest pose before the lead-in
+    # A sequence over a physical-validity bound (datagen.qa): rejected with its reason, or kept
+    # (written, and flagged by `datagen validate`; `--qa warning` lets it pass).
+    qa: str = "reject"
 
     def validate(self, source, path: str) -> None:
         from datagen.sim.simulate import QUALITY_PRESETS
@@ -124,6 +128,8 @@ class SimulationConfig:
             raise InputError(source, f"{path}.quality",
                              f"one of {', '.join(QUALITY_PRESETS[self.solver])}", self.quality)
         check_range(self.settle_seconds, 0.0, 10.0, source, f"{path}.settle_seconds")
+        if self.qa not in QA_POLICIES:
+            raise InputError(source, f"{path}.qa", f"one of {', '.join(QA_POLICIES)}", self.qa)
         if not isinstance(self.effects, str) or self.effects not in ("auto", "all"):
             from datagen.sim.effects import EFFECT_NAMES
 

@@ -32,6 +32,7 @@ outfit:
 simulation:
   quality: draft
   settle_seconds: 0.1
+  qa: keep
 storage:
   shard_size: 2
 """

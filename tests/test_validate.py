@@ -202,7 +202,7 @@ def test_qa_limits(tmp_path):
     problems = _single(tmp_path, strain)
     messages = " | ".join(p.message for p in errors(problems))
     assert len(errors(problems)) == 2, messages
-    assert "qa/strain_p999 reaches 0.3" in messages and "max_strain 0.25" in messages
+    assert "qa/strain_p999 reaches 0.3" in messages and "max_strain; bound 0.25" in messages
     assert "qa/kinetic_energy: negative" in messages
     as_warnings = validate(tmp_path / "one.h5", qa="warning")
     assert len(as_warnings) == 2 and not errors(as_warnings)
@@ -230,3 +230,44 @@ def test_missing_path_and_empty_folder(tmp_path):
     assert "no shard files" in only_error(validate(tmp_path)).message
     code, out = run_cli(tmp_path / "nope")
     assert code == 2 and "does not exist" in out
+
+
+def test_qa_gate_rejects_what_validate_would_fail(tmp_path):
+    """A dataset run's QA gate (recipe `simulation.qa: reject`) turns a sequence over a bound
+    into a rejected record that names the bound, the value and the frame; the shard it makes
+    passes strict validation, and a sequence within the bounds goes through untouched."""
+    from datagen.pipeline.stages import reject_over_qa_bounds
+
+    within = sf.make_record(0).record
+    assert reject_over_qa_bounds(within) is within
+
+    over = sf.make_record(1).record  # cotton upper + denim lower: the strain bound is 0.25
+    over.sim.qa["strain_p999"][4] = 0.4
+    over.sim.qa["deep_share"][7] = 0.02
+    rejected = reject_over_qa_bounds(over)
+    assert rejected.status == "rejected" and rejected.stage == "qa"
+    assert rejected.frames == (7, 7)  # the first breach listed: deep_share
+    assert rejected.body is None and rejected.sim is None and rejected.garments is None
+    assert ("cloth deeper in the body than its thickness (qa/deep_share 0.02 at frame 7, "
+            "bound 0.01)") in rejected.reason
+    assert ("strain over the fabrics' max_strain (qa/strain_p999 0.4 at frame 4, bound 0.25)"
+            in rejected.reason)
+    path = sf.write_shard(tmp_path / "gated.h5", [within, rejected])
+    assert validate(path) == []
+    with h5py.File(path, "r") as f:
+        (name,) = list(f["rejected"])
+        assert f["rejected"][name].attrs["stage"] == "qa"
+
+
+def test_recipe_qa_policy_is_checked(tmp_path):
+    from datagen.errors import InputError
+    from datagen.recipe import load_recipe
+
+    text = (Path(__file__).parents[1] / "pipelines" / "default.yaml").read_text()
+    assert "  qa: reject" in text
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text.replace("  qa: reject", "  qa: drop"))
+    with pytest.raises(InputError) as exc:
+        load_recipe(bad)
+    message = str(exc.value)
+    assert "bad.yaml" in message and "simulation.qa" in message and "reject, keep" in message

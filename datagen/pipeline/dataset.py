@@ -53,7 +53,7 @@ def _worker_state(recipe_path: str) -> dict:
 def compute_sequence(recipe_path: str, index: int):
     """Run sequence `index` of the recipe (in any process): a SequenceRecord."""
     from datagen.garment.outfit import outfit_config, resolve_templates_dir
-    from datagen.pipeline.stages import run_sequence
+    from datagen.pipeline.stages import reject_over_qa_bounds, run_sequence
     from datagen.sampling import sample_scene
 
     state = _worker_state(recipe_path)
@@ -62,7 +62,10 @@ def compute_sequence(recipe_path: str, index: int):
     templates = None
     if loaded.recipe.outfit:
         templates = resolve_templates_dir(outfit_config(loaded).templates, loaded.base_dir)
-    return run_sequence(spec, state["model"], loaded.recipe.body, loaded.base_dir, templates)
+    record = run_sequence(spec, state["model"], loaded.recipe.body, loaded.base_dir, templates)
+    if loaded.recipe.simulation.qa == "reject":
+        record = reject_over_qa_bounds(record)
+    return record
 
 
 # -- the output folder -------------------------------------------------------------------------

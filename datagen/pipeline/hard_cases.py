@@ -18,11 +18,11 @@ import numpy as np
 
 from datagen.config import check_range, from_mapping, load_yaml
 from datagen.errors import InputError
+from datagen.qa import DEEP_SHARE_MAX  # per frame after the lead-in
 from datagen.sim.model import STRAIN_SHARE_MAX
 from datagen.spec import GarmentSpec, MotionSpec, OutfitSpec, SceneSpec, SimSpec, SubjectSpec
 from datagen.types import BodySequence, Garment, Motion
 
-DEEP_SHARE_MAX = 0.01  # vertices deeper than the thickness, per frame after the lead-in
 # Kinetic energy per kilogram of cloth: the cloth moves with a body whose limbs reach about
 # 10 m/s; an average cloth speed of 10 m/s would be a blow-up, not a motion.
 KINETIC_PER_KG_MAX = 0.5 * 10.0**2

@@ -93,3 +93,21 @@ def run_sequence(
         record.stage, record.reason, record.frames = exc.stage, exc.reason, exc.frames
         record.body = record.garments = record.sim = None
     return record
+
+
+def reject_over_qa_bounds(record: SequenceRecord, fabrics: dict | None = None) -> SequenceRecord:
+    """The dataset's QA gate: a simulated sequence that breaks a physical-validity bound
+    (datagen.qa) becomes a rejected record, stage "qa", with the bound, the value and the frame,
+    instead of training data that `datagen validate` would fail."""
+    from datagen import qa
+
+    if record.status != "ok" or record.sim is None or not record.garments:
+        return record
+    limit = qa.strain_limit([g.fabric for g in record.garments], fabrics)
+    found = qa.breaches(record.sim.qa, limit)
+    if not found:
+        return record
+    frame = found[0].frame
+    return SequenceRecord(
+        spec=record.spec, status="rejected", stage="qa",
+        reason="; ".join(b.reason for b in found), frames=(frame, frame), timings=record.timings)
