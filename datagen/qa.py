@@ -37,13 +37,13 @@ class Breach:
                 f"bound {self.limit:g})")
 
 
-def strain_limit(fabric_names: Iterable[str], fabrics: Mapping | None = None) -> float | None:
-    """The largest max_strain of a sequence's fabrics: the QA series cover all garments
-    together, so a stiffer garment's bound would flag its softer neighbour's strain. None when
-    there are no garments."""
+def strain_limit(fabric_names: Iterable[str]) -> float | None:
+    """The largest max_strain of a sequence's (built-in) fabrics: the QA series cover all
+    garments together, so a stiffer garment's bound would flag its softer neighbour's strain.
+    None when there are no garments."""
     from datagen.sim.fabrics import get_fabric
 
-    limits = [get_fabric(name, fabrics or {}).max_strain for name in fabric_names]
+    limits = [get_fabric(name).max_strain for name in fabric_names]
     return max(limits) if limits else None
 
 

@@ -95,7 +95,7 @@ def run_sequence(
     return record
 
 
-def reject_over_qa_bounds(record: SequenceRecord, fabrics: dict | None = None) -> SequenceRecord:
+def reject_over_qa_bounds(record: SequenceRecord) -> SequenceRecord:
     """The dataset's QA gate: a simulated sequence that breaks a physical-validity bound
     (datagen.qa) becomes a rejected record, stage "qa", with the bound, the value and the frame,
     instead of training data that `datagen validate` would fail."""
@@ -103,7 +103,7 @@ def reject_over_qa_bounds(record: SequenceRecord, fabrics: dict | None = None) -
 
     if record.status != "ok" or record.sim is None or not record.garments:
         return record
-    limit = qa.strain_limit([g.fabric for g in record.garments], fabrics)
+    limit = qa.strain_limit([g.fabric for g in record.garments])
     found = qa.breaches(record.sim.qa, limit)
     if not found:
         return record
