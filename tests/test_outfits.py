@@ -106,9 +106,12 @@ def _scale(a: np.ndarray, b: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.xfail(strict=False, reason=(
-    "resizing is not yet smooth to 30 %: on 2026-11-22 the largest single-edge scale change "
-    "beyond the garment's mean was 29-124 % (skirts and trousers worst), a few crease edges per "
-    "garment; the issue's criterion stands and this marks it as open"))
+    "resizing is not yet smooth to 30 %: with the screened smoothing (2026-11-22) the largest "
+    "single-edge change beyond the garment's mean is 72 % longer / 89 % shorter (was 124 % with "
+    "nearest-point transfer), p99.9 under 50 %. The body drives it: Anny's own surface changes "
+    "non-uniformly past 30 % at the extremes (a 1.24 m subject's knees shrink vertically to 0.45 "
+    "against a body mean of 0.76; a heavy subject's belly widens 1.79 against 1.14), and a garment "
+    "that follows the body inherits it; the issue's criterion stands and this marks it open"))
 def test_resizing_changes_edges_smoothly(fitted, body_model):
     """Every shipped template resized to the extreme subjects and to a dozen drawn ones (at their
     tightness): no edge's length changes by more than 30 % beyond the garment's average scale

@@ -46,3 +46,40 @@ def test_predictable_frames_is_where_the_twin_leaves(trajectory):
 def test_pareto_front():
     points = [(1.0, 10.0), (2.0, 5.0), (3.0, 6.0), (4.0, 1.0), (0.5, 20.0)]
     assert sorted(pareto(points)) == [0, 1, 3, 4]
+
+
+def test_a_stopped_study_keeps_its_finished_parts(tmp_path):
+    """The full plan takes hours: a finished scene/fabric part is saved and a later run with the
+    same plan reuses it instead of measuring it again; one from another plan is not reused."""
+    import json
+    from dataclasses import asdict
+
+    from datagen.study.sweep import (
+        Row,
+        _part_path,
+        _plan_signature,
+        quick_plan,
+        reusable,
+        run_study,
+    )
+
+    plan = quick_plan()
+    (scene, resolution), fabric = plan.scenes[0], plan.fabrics[0]
+    row = Row(scene, fabric, resolution, "xpbd", 20, 4, 1089, 0.45, 1.31, 25.4, 4.46, 21.3,
+              0.144, 0.0)
+    signature = json.loads(json.dumps(_plan_signature(plan, scene)))
+    part = {"key": f"{scene}/{fabric}", "signature": signature,
+            "ladder": [{"substeps": 40, "seconds": 14.0}], "predictable_frames": 10,
+            "blender_vs_ours_mm": None, "blender": "absent", "minutes": 3.0,
+            "rows": [asdict(row)]}
+    path = _part_path(tmp_path, scene, resolution, fabric)
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps(part))
+    logged: list[str] = []
+    summary, rows = run_study(tmp_path, quick=True, blender=False, log=logged.append)
+    assert rows == [row]  # nothing was run again (a real run takes minutes)
+    assert summary["minutes"] == 3.0 and summary["predictable_frames"] == {part["key"]: 10}
+    assert any("reusing" in line for line in logged)
+    assert (tmp_path / "accuracy.csv").read_text().count("\n") == 2
+    assert not reusable(part, {**signature, "reference_levels": 7}, have_blender=False)
+    assert not reusable(part, signature, have_blender=True)  # Blender's series is missing

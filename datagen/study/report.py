@@ -70,8 +70,9 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
         f"Written by `{command}` on {date.today().isoformat()} "
         f"({'quick' if summary['quick'] else 'full'} plan, {summary['minutes']:.0f} min; "
         f"Blender: {summary['blender']}). The CSV and the summary are in the command's output "
-        "folder. Times are wall-clock seconds per simulated second on this machine, all "
-        "measured in the same run.",
+        "folder. Times are wall-clock seconds per simulated second on this machine; each scene "
+        "and fabric (its reference, our runs and Blender's) was measured in one run, and the "
+        "minutes are the sum over those runs.",
         "",
         "## The converged reference",
         "",

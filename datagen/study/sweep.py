@@ -177,83 +177,128 @@ def _row(scene, fabric, resolution, series, sub, it, vertices, run_positions, re
     )
 
 
-def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=print,
-              presets: dict[str, tuple[int, int]] | None = None) -> tuple[dict, list[Row]]:
-    """Run the plan; write the CSV, the summary and the plot (`presets` circled) into `out`."""
+def _part_path(out: Path, scene: str, resolution: str, fabric: str) -> Path:
+    return out / "parts" / f"{scene}-{resolution or 'default'}-{fabric}.json"
+
+
+def _plan_signature(plan: Plan, scene: str) -> dict:
+    """What a finished part depends on: a part measured under another plan is not reused."""
+    return {"configs": plan.configs, "resolutions": plan.resolutions.get(scene, []),
+            "reference_start": plan.reference_start, "reference_levels":
+            plan.reference_levels, "blender_qualities": plan.blender_qualities,
+            "blender_converged": plan.blender_converged}
+
+
+def reusable(part: dict, signature: dict, have_blender: bool) -> bool:
+    """A saved part stands for this run if it was measured under the same plan, and with
+    Blender's series whenever this run has Blender."""
+    return part["signature"] == signature and (part["blender"] != "absent" or not have_blender)
+
+
+def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_blender: bool,
+             log) -> dict:
+    """One scene and fabric: its reference ladder, its predictable horizon, our sweep and
+    Blender's series, all timed in this one run."""
     from datagen.errors import RejectedSequence
+    from datagen.study import blender as peer
     from datagen.study.run import run_ours
     from datagen.study.scenes import build_scene
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    plan = quick_plan() if quick else full_plan()
+    t_start = time.time()
     rows: list[Row] = []
-    ladders: dict[str, list[dict]] = {}
-    model_gap: dict[str, float] = {}
-    horizons: dict[str, int] = {}
+    key = f"{scene_name}/{fabric}"
+    log(f"{key}: reference")
+    scene = build_scene(scene_name, fabric, resolution)
+    horizon = scene.horizon + 1
+    ref, ladder = reference_ladder(scene_name, fabric, resolution, plan, horizon, log)
+    finest = ladder[-1]["substeps"]
+    twin = run_worker(scene_name, fabric, resolution, "implicit", finest, 20, True,
+                      perturb=TWIN_METRES)["positions"]
+    pred = predictable_frames(ref, twin)
+    log(f"  predictable for {pred} frames (twin {TWIN_METRES * 1e6:.0f} um away)")
+    for solver, configs in plan.configs.items():
+        for sub, it in configs:
+            try:
+                run = run_ours(scene, solver, sub, it)
+            except RejectedSequence as exc:
+                rows.append(Row(scene_name, fabric, resolution, solver, sub, it,
+                                scene.n_vertices, np.nan, np.nan, np.nan, np.nan, np.nan,
+                                np.nan, np.nan, "rejected", exc.reason))
+                log(f"  {solver} {sub}x{it}: rejected ({exc.reason})")
+                continue
+            rows.append(_row(scene_name, fabric, resolution, solver, sub, it,
+                             scene.n_vertices, run.positions, ref, horizon,
+                             run.seconds_per_simulated_second, run.qa, predictable=pred))
+            log(f"  {solver} {sub}x{it}: {asdict(rows[-1])}")
+    for other in plan.resolutions.get(scene_name, []):
+        alt = build_scene(scene_name, fabric, other)
+        mapping = _probe_map(np.concatenate([g.rest for g in alt.garments]),
+                             np.concatenate([g.faces for g in alt.garments]),
+                             np.concatenate([g.rest for g in scene.garments]))
+        for sub, it in plan.configs["xpbd"][1:4]:
+            run = run_ours(alt, "xpbd", sub, it)
+            rows.append(_row(scene_name, fabric, other, "xpbd", sub, it, alt.n_vertices,
+                             _at_probes(run.positions, mapping), ref, horizon,
+                             run.seconds_per_simulated_second, run.qa,
+                             "measured at the reference mesh's vertices", pred))
+            log(f"  xpbd {other} {sub}x{it}: {asdict(rows[-1])}")
+    gap = None
+    if have_blender:
+        converged = peer.run_blender(scene, plan.blender_converged)
+        gap = 1000 * rms_distance(converged.positions, ref, pred)
+        for q in plan.blender_qualities:
+            run = peer.run_blender(scene, q)
+            rows.append(_row(scene_name, fabric, resolution, "blender", q, 1, scene.n_vertices,
+                             run.positions, converged.positions, horizon,
+                             run.seconds_per_simulated_second, {},
+                             f"against Blender quality {plan.blender_converged}", pred))
+            log(f"  blender q{q}: {asdict(rows[-1])}")
+    return {"key": key, "signature": _plan_signature(plan, scene_name), "ladder": ladder,
+            "predictable_frames": pred, "blender_vs_ours_mm": gap,
+            "blender": peer.blender_version() if have_blender else "absent",
+            "minutes": (time.time() - t_start) / 60, "rows": [asdict(r) for r in rows]}
+
+
+def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=print,
+              presets: dict[str, tuple[int, int]] | None = None) -> tuple[dict, list[Row]]:
+    """Run the plan; write the CSV, the summary and the plot (`presets` circled) into `out`.
+
+    Each scene and fabric is a part, saved under `out/parts/` when it finishes: a run that is
+    stopped keeps its finished parts, and the next run with the same plan reuses them (the
+    full plan takes hours on 2 cores). A part's times were all measured in its own run."""
     from datagen.study import blender as peer
 
+    out = Path(out)
+    (out / "parts").mkdir(parents=True, exist_ok=True)
+    plan = quick_plan() if quick else full_plan()
     have_blender = blender and peer.blender_executable() is not None
     if blender and not have_blender:
         log("Blender is not installed: the peer series is skipped (apt-get install blender).")
-    t_start = time.time()
+    parts = []
     for scene_name, resolution in plan.scenes:
         for fabric in plan.fabrics:
-            key = f"{scene_name}/{fabric}"
-            log(f"{key}: reference")
-            scene = build_scene(scene_name, fabric, resolution)
-            horizon = scene.horizon + 1
-            ref, ladders[key] = reference_ladder(scene_name, fabric, resolution, plan,
-                                                 horizon, log)
-            finest = ladders[key][-1]["substeps"]
-            twin = run_worker(scene_name, fabric, resolution, "implicit", finest, 20, True,
-                              perturb=TWIN_METRES)["positions"]
-            pred = predictable_frames(ref, twin)
-            horizons[key] = pred
-            log(f"  predictable for {pred} frames (twin {TWIN_METRES * 1e6:.0f} um away)")
-            for solver, configs in plan.configs.items():
-                for sub, it in configs:
-                    try:
-                        run = run_ours(scene, solver, sub, it)
-                    except RejectedSequence as exc:
-                        rows.append(Row(scene_name, fabric, resolution, solver, sub, it,
-                                        scene.n_vertices, np.nan, np.nan, np.nan, np.nan,
-                                        np.nan, np.nan, np.nan, "rejected", exc.reason))
-                        log(f"  {solver} {sub}x{it}: rejected ({exc.reason})")
-                        continue
-                    rows.append(_row(scene_name, fabric, resolution, solver, sub, it,
-                                     scene.n_vertices, run.positions, ref, horizon,
-                                     run.seconds_per_simulated_second, run.qa,
-                                     predictable=pred))
-                    log(f"  {solver} {sub}x{it}: {asdict(rows[-1])}")
-            for other in plan.resolutions.get(scene_name, []):
-                alt = build_scene(scene_name, fabric, other)
-                mapping = _probe_map(np.concatenate([g.rest for g in alt.garments]),
-                                     np.concatenate([g.faces for g in alt.garments]),
-                                     np.concatenate([g.rest for g in scene.garments]))
-                for sub, it in plan.configs["xpbd"][1:4]:
-                    run = run_ours(alt, "xpbd", sub, it)
-                    rows.append(_row(scene_name, fabric, other, "xpbd", sub, it,
-                                     alt.n_vertices, _at_probes(run.positions, mapping), ref,
-                                     horizon, run.seconds_per_simulated_second, run.qa,
-                                     "measured at the reference mesh's vertices", pred))
-                    log(f"  xpbd {other} {sub}x{it}: {asdict(rows[-1])}")
-            if have_blender:
-                converged = peer.run_blender(scene, plan.blender_converged)
-                model_gap[key] = 1000 * rms_distance(converged.positions, ref, pred)
-                for q in plan.blender_qualities:
-                    run = peer.run_blender(scene, q)
-                    rows.append(_row(scene_name, fabric, resolution, "blender", q, 1,
-                                     scene.n_vertices, run.positions, converged.positions,
-                                     horizon, run.seconds_per_simulated_second, {},
-                                     f"against Blender quality {plan.blender_converged}",
-                                     pred))
-                    log(f"  blender q{q}: {asdict(rows[-1])}")
+            path = _part_path(out, scene_name, resolution, fabric)
+            wanted = json.loads(json.dumps(_plan_signature(plan, scene_name)))
+            if path.exists():
+                part = json.loads(path.read_text())
+                if reusable(part, wanted, have_blender):
+                    log(f"{part['key']}: reusing {path} ({part['minutes']:.0f} min)")
+                    parts.append(part)
+                    continue
+                log(f"{part['key']}: {path} was measured under another plan; running it again")
+            part = run_part(scene_name, resolution, fabric, plan, have_blender, log)
+            path.write_text(json.dumps(part, indent=1, default=float))
+            parts.append(part)
+    rows = [Row(**r) for part in parts for r in part["rows"]]
     summary = {
-        "quick": quick, "minutes": (time.time() - t_start) / 60, "ladders": ladders,
-        "predictable_frames": horizons, "twin_metres": TWIN_METRES, "chaos_mm": CHAOS_MM,
-        "blender_vs_ours_mm": model_gap, "blender": peer.blender_version() if have_blender
-        else "absent", "plan": asdict(plan),
+        "quick": quick, "minutes": sum(p["minutes"] for p in parts),
+        "ladders": {p["key"]: p["ladder"] for p in parts},
+        "predictable_frames": {p["key"]: p["predictable_frames"] for p in parts},
+        "twin_metres": TWIN_METRES, "chaos_mm": CHAOS_MM,
+        "blender_vs_ours_mm": {p["key"]: p["blender_vs_ours_mm"] for p in parts
+                               if p["blender_vs_ours_mm"] is not None},
+        "blender": next((p["blender"] for p in parts if p["blender"] != "absent"), "absent"),
+        "plan": asdict(plan),
     }
     write_outputs(out, rows, summary, presets)
     return summary, rows
