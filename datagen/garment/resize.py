@@ -107,18 +107,78 @@ def transfer_displacement(
     return np.asarray(spsolve(system, follow[:, None] * body_disp)).reshape(body_disp.shape)
 
 
-def body_signed_distance(points: np.ndarray, body: RestBody) -> tuple[np.ndarray, np.ndarray]:
-    """Signed distance to the (watertight) rest body and the surface normal at the closest
-    point."""
+def _pseudonormal_side(mesh, points: np.ndarray, closest: np.ndarray,
+                       tri: np.ndarray) -> np.ndarray:
+    """+1 outside, -1 inside: the side of the closest point's angle-weighted pseudonormal
+    (Baerentzen and Aanaes 2005), exact for a closed, consistently oriented mesh: the face
+    normal where the closest point lies inside a face, the sum of the two face normals at an
+    edge, the angle-weighted vertex normal at a corner."""
     import trimesh
 
-    mesh = trimesh.Trimesh(body.vertices, body.faces, process=False)
+    faces = mesh.faces
+    fn = mesh.face_normals
+    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], closest)
+    on_zero = bary < 1e-7
+    zeros = on_zero.sum(axis=1)
+    normal = fn[tri].copy()
+    edge_points = np.flatnonzero(zeros == 1)
+    if len(edge_points):
+        all_edges = np.sort(np.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]],
+                                     axis=1).reshape(-1, 2), axis=1)  # edge k opposite corner k
+        unique, inverse = np.unique(all_edges, axis=0, return_inverse=True)
+        edge_normal = np.zeros((len(unique), 3))
+        np.add.at(edge_normal, inverse.ravel(), np.repeat(fn, 3, axis=0))
+        k = np.argmax(on_zero[edge_points], axis=1)
+        normal[edge_points] = edge_normal[inverse.ravel()[3 * tri[edge_points] + k]]
+    corner_points = np.flatnonzero(zeros >= 2)
+    if len(corner_points):
+        vertex_normal = trimesh.geometry.weighted_vertex_normals(
+            len(mesh.vertices), faces, fn, mesh.face_angles)
+        corner = faces[tri[corner_points], np.argmax(bary[corner_points], axis=1)]
+        normal[corner_points] = vertex_normal[corner]
+    side = np.sign(np.einsum("ij,ij->i", points - closest, normal))
+    return np.where(side < 0, -1.0, 1.0)
+
+
+def body_signed_distance(points: np.ndarray, body: RestBody,
+                         mesh=None) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distance to the (watertight) rest body and the surface normal at the closest
+    point. `mesh`: the body as a trimesh.Trimesh, when the caller asks many times (its spatial
+    index is built once)."""
+    import trimesh
+
+    if mesh is None:
+        mesh = trimesh.Trimesh(body.vertices, body.faces, process=False)
     closest, dist, tri = trimesh.proximity.closest_point(mesh, points)
-    normals = mesh.face_normals[tri]
-    sign = np.sign(np.einsum("ij,ij->i", points - closest, normals))
-    inside = mesh.contains(points[sign <= 0]) if np.any(sign <= 0) else np.zeros(0, bool)
-    sign[sign <= 0] = np.where(inside, -1.0, 1.0)
-    return sign * dist, normals
+    return _pseudonormal_side(mesh, points, closest, tri) * dist, mesh.face_normals[tri]
+
+
+class _ClearanceTracker:
+    """Signed distances of moving points, queried again only where they could matter: the
+    distance to the body changes by at most how far a point moved, so a point whose last known
+    distance minus its movement since is still beyond `reach` needs no new query (the closest-
+    point query is most of an outfit's set-up time)."""
+
+    def __init__(self, points: np.ndarray, body: RestBody, reach: float) -> None:
+        import trimesh
+
+        self.mesh = trimesh.Trimesh(body.vertices, body.faces, process=False)
+        self.body, self.reach = body, reach
+        self.sd = np.full(len(points), -np.inf)  # unknown: query everything the first time
+        self.normals = np.zeros((len(points), 3))
+        self.moved = np.zeros(len(points))
+
+    def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(a lower bound of the signed distance, exact where it is below `reach`; normals)"""
+        ask = np.flatnonzero(self.sd - self.moved < self.reach)
+        if len(ask):
+            self.sd[ask], self.normals[ask] = body_signed_distance(points[ask], self.body,
+                                                                   self.mesh)
+            self.moved[ask] = 0.0
+        return self.sd - self.moved, self.normals
+
+    def move(self, step: np.ndarray) -> None:
+        self.moved += np.linalg.norm(step, axis=1)
 
 
 def push_out(
@@ -131,8 +191,9 @@ def push_out(
     """Move vertices closer than `clearance` to the body (or inside it) outward along the body
     normal, spreading the move smoothly so the surface keeps its shape."""
     out = np.array(vertices, dtype=np.float64, copy=True)
+    distances = _ClearanceTracker(out, body, reach=clearance + 0.005)
     for _ in range(rounds):
-        sd, normals = body_signed_distance(out, body)
+        sd, normals = distances.query(out)
         short = clearance + 0.001 - sd
         if np.all(short <= 0.001):
             return out  # every vertex at least `clearance` clear
@@ -143,8 +204,9 @@ def push_out(
         along = np.einsum("ij,ij->i", spread, normals)
         spread += np.maximum(need - along, 0.0)[:, None] * normals
         out += spread
+        distances.move(spread)
     # Smoothing can leave a vertex in a crease short of its need: move those straight out.
-    sd, normals = body_signed_distance(out, body)
+    sd, normals = distances.query(out)
     short = np.maximum(clearance - sd, 0.0)
     out += short[:, None] * normals
     return out
