@@ -83,3 +83,29 @@ def test_a_stopped_study_keeps_its_finished_parts(tmp_path):
     assert (tmp_path / "accuracy.csv").read_text().count("\n") == 2
     assert not reusable(part, {**signature, "reference_levels": 7}, have_blender=False)
     assert not reusable(part, signature, have_blender=True)  # Blender's series is missing
+
+
+def test_report_only_names_the_parts_not_measured_yet(tmp_path):
+    import json
+    from dataclasses import asdict
+
+    import click
+
+    from datagen.study.sweep import Row, _part_path, _plan_signature, full_plan, run_study
+
+    plan = full_plan()
+    with pytest.raises(click.UsageError, match="no finished part"):
+        run_study(tmp_path, blender=False, measure=False, log=lambda _: None)
+    (scene, resolution), fabric = plan.scenes[0], plan.fabrics[0]
+    row = Row(scene, fabric, resolution, "xpbd", 20, 4, 4225, 1.0, 1.0, 9.0, 3.0, 9.0, 0.1, 0.0)
+    part = {"key": f"{scene}/{fabric}",
+            "signature": json.loads(json.dumps(_plan_signature(plan, scene))),
+            "ladder": [{"substeps": 40, "seconds": 50.0}], "predictable_frames": 9,
+            "blender_vs_ours_mm": None, "blender": "absent", "minutes": 30.0,
+            "rows": [asdict(row)]}
+    path = _part_path(tmp_path, scene, resolution, fabric)
+    path.write_text(json.dumps(part))  # the first call made the parts folder
+    summary, rows = run_study(tmp_path, blender=False, measure=False, log=lambda _: None)
+    assert rows == [row]
+    expected = [f"{s}/{f}" for s, _ in plan.scenes for f in plan.fabrics][1:]
+    assert summary["missing_parts"] == expected

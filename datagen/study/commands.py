@@ -23,13 +23,17 @@ def bench() -> None:
 @click.option("--doc", type=click.Path(dir_okay=False), default=None,
               help="Where the report goes (default: docs/accuracy-vs-time.md in a checkout, "
                    "else OUT/accuracy-vs-time.md).")
-def accuracy(quick: bool, out: str, blender: bool, doc: str | None) -> None:
-    """Sweep solvers, substeps, iterations and resolutions against a converged reference."""
+@click.option("--report-only", is_flag=True,
+              help="Run nothing: write the CSV, plot and report from the parts already "
+                   "finished under OUT/parts (a stopped full run), naming the missing ones.")
+def accuracy(quick: bool, out: str, blender: bool, doc: str | None, report_only: bool) -> None:
+    """Sweep solvers, substeps, iterations and resolutions against a converged reference.
+    Each finished scene/fabric is kept under OUT/parts and reused by the next run."""
     from datagen.study.sweep import main_cli
 
     if doc is None and REPO_DOC.parent.is_dir():
         doc = str(REPO_DOC)
     command = "datagen bench accuracy" + (" --quick" if quick else "") + f" --out {out}"
-    summary = main_cli(out, quick, blender, doc, command)
+    summary = main_cli(out, quick, blender, doc, command, measure=not report_only)
     click.echo(f"{out}: accuracy.csv, accuracy-vs-time.png; report {doc or out} "
                f"({summary['minutes']:.1f} min)")

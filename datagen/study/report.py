@@ -73,6 +73,11 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
         "folder. Times are wall-clock seconds per simulated second on this machine; each scene "
         "and fabric (its reference, our runs and Blender's) was measured in one run, and the "
         "minutes are the sum over those runs.",
+        *([] if not summary.get("missing_parts") else [
+            "",
+            f"**Partial: {len(summary['missing_parts'])} scene/fabric part(s) of the plan are "
+            f"not measured yet: {', '.join(summary['missing_parts'])}.** The run keeps "
+            "finished parts; running the same command again measures the rest."]),
         "",
         "## The converged reference",
         "",

@@ -25,6 +25,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import click
 import numpy as np
 
 from datagen.study.metrics import final_distance, max_distance, rms_by_frame, rms_distance
@@ -270,12 +271,14 @@ def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_ble
 
 
 def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=print,
-              presets: dict[str, tuple[int, int]] | None = None) -> tuple[dict, list[Row]]:
+              presets: dict[str, tuple[int, int]] | None = None,
+              measure: bool = True) -> tuple[dict, list[Row]]:
     """Run the plan; write the CSV, the summary and the plot (`presets` circled) into `out`.
 
     Each scene and fabric is a part, saved under `out/parts/` when it finishes: a run that is
     stopped keeps its finished parts, and the next run with the same plan reuses them (the
-    full plan takes hours on 2 cores). A part's times were all measured in its own run."""
+    full plan takes hours on 2 cores). A part's times were all measured in its own run.
+    `measure=False` only reports the finished parts and lists the missing ones."""
     from datagen.study import blender as peer
 
     out = Path(out)
@@ -284,7 +287,7 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
     have_blender = blender and peer.blender_executable() is not None
     if blender and not have_blender:
         log("Blender is not installed: the peer series is skipped (apt-get install blender).")
-    parts = []
+    parts, missing = [], []
     for scene_name, resolution in plan.scenes:
         for fabric in plan.fabrics:
             path = _part_path(out, scene_name, resolution, fabric)
@@ -295,12 +298,18 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
                     log(f"{part['key']}: reusing {path} ({part['minutes']:.0f} min)")
                     parts.append(part)
                     continue
-                log(f"{part['key']}: {path} was measured under another plan; running it again")
+                log(f"{part['key']}: {path} was measured under another plan")
+            if not measure:
+                missing.append(f"{scene_name}/{fabric}")
+                continue
             part = run_part(scene_name, resolution, fabric, plan, have_blender, log)
             path.write_text(json.dumps(part, indent=1, default=float))
             parts.append(part)
+    if not parts:
+        raise click.UsageError(f"{out / 'parts'} holds no finished part of this plan yet")
     rows = [Row(**r) for part in parts for r in part["rows"]]
     summary = {
+        "missing_parts": missing,
         "quick": quick, "minutes": sum(p["minutes"] for p in parts),
         "ladders": {p["key"]: p["ladder"] for p in parts},
         "predictable_frames": {p["key"]: p["predictable_frames"] for p in parts},
@@ -381,14 +390,17 @@ def plot(path: Path, rows: list[Row], presets: dict[str, tuple[int, int]] | None
     plt.close(fig)
 
 
-def main_cli(out: str, quick: bool, blender: bool, doc: str | None, command: str) -> dict:
-    """Run the study into `out`, then write the report to `doc`."""
+def main_cli(out: str, quick: bool, blender: bool, doc: str | None, command: str,
+             measure: bool = True) -> dict:
+    """Run the study into `out` (or, with measure=False, take its finished parts), then write
+    the report to `doc`."""
     from datagen.sim.simulate import QUALITY_PRESETS
     from datagen.study.report import write_report
 
     os.environ.setdefault("PYTHONWARNINGS", "ignore")
     presets = QUALITY_PRESETS["xpbd"]
-    summary, rows = run_study(out, quick=quick, blender=blender, presets=presets)
+    summary, rows = run_study(out, quick=quick, blender=blender, presets=presets,
+                              measure=measure)
     write_report(Path(doc) if doc else Path(out) / "accuracy-vs-time.md", Path(out), rows,
                  summary, presets, command)
     return summary
