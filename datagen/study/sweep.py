@@ -205,6 +205,14 @@ def _plan_signature(plan: Plan, scene: str) -> dict:
             "blender_converged": plan.blender_converged}
 
 
+def _rejected_row(scene: str, fabric: str, resolution: str, solver: str, sub: int, it: int,
+                  vertices: int, exc, log) -> Row:
+    log(f"  {solver} {resolution} {sub}x{it}: rejected ({exc.reason})")
+    nan = float("nan")
+    return Row(scene, fabric, resolution, solver, sub, it, vertices, nan, nan, nan, nan, nan,
+               nan, nan, "rejected", exc.reason)
+
+
 def reusable(part: dict, signature: dict, have_blender: bool) -> bool:
     """A saved part stands for this run if it was measured under the same plan, and with
     Blender's series whenever this run has Blender."""
@@ -232,10 +240,8 @@ def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_ble
             try:
                 run = run_ours(scene, solver, sub, it)
             except RejectedSequence as exc:
-                rows.append(Row(scene_name, fabric, resolution, solver, sub, it,
-                                scene.n_vertices, np.nan, np.nan, np.nan, np.nan, np.nan,
-                                np.nan, np.nan, "rejected", exc.reason))
-                log(f"  {solver} {sub}x{it}: rejected ({exc.reason})")
+                rows.append(_rejected_row(scene_name, fabric, resolution, solver, sub, it,
+                                          scene.n_vertices, exc, log))
                 continue
             rows.append(_row(scene_name, fabric, resolution, solver, sub, it,
                              scene.n_vertices, run.positions, ref, horizon,
@@ -247,7 +253,12 @@ def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_ble
                              np.concatenate([g.faces for g in alt.garments]),
                              np.concatenate([g.rest for g in scene.garments]))
         for sub, it in plan.configs["xpbd"][1:4]:
-            run = run_ours(alt, "xpbd", sub, it)
+            try:
+                run = run_ours(alt, "xpbd", sub, it)
+            except RejectedSequence as exc:  # a rejection is a result of the study, not a stop
+                rows.append(_rejected_row(scene_name, fabric, other, "xpbd", sub, it,
+                                          alt.n_vertices, exc, log))
+                continue
             rows.append(_row(scene_name, fabric, other, "xpbd", sub, it, alt.n_vertices,
                              _at_probes(run.positions, mapping), ref, horizon,
                              run.seconds_per_simulated_second, run.qa,
