@@ -83,8 +83,9 @@ def laplacian_smooth(
 
 def graph_laplacian(n_vertices: int, faces: np.ndarray) -> sp.csr_matrix:
     """The mesh's uniform graph Laplacian (degree minus adjacency), positive semi-definite."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.unique(np.sort(e, axis=1), axis=0)
+    from datagen.sim.model import edges_of
+
+    e = edges_of(faces)[0]
     a = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_vertices, n_vertices))
     a = (a + a.T).tocsr()
     return (sp.diags(np.asarray(a.sum(axis=1)).ravel()) - a).tocsr()
@@ -115,7 +116,6 @@ def _pseudonormal_side(mesh, points: np.ndarray, closest: np.ndarray,
     edge, the angle-weighted vertex normal at a corner."""
     import trimesh
 
-    faces = mesh.faces
     fn = mesh.face_normals
     bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], closest)
     on_zero = bary < 1e-7
@@ -123,19 +123,17 @@ def _pseudonormal_side(mesh, points: np.ndarray, closest: np.ndarray,
     normal = fn[tri].copy()
     edge_points = np.flatnonzero(zeros == 1)
     if len(edge_points):
-        all_edges = np.sort(np.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]],
-                                     axis=1).reshape(-1, 2), axis=1)  # edge k opposite corner k
-        unique, inverse = np.unique(all_edges, axis=0, return_inverse=True)
-        edge_normal = np.zeros((len(unique), 3))
-        np.add.at(edge_normal, inverse.ravel(), np.repeat(fn, 3, axis=0))
+        # trimesh lists face f's edges as (v0, v1), (v1, v2), (v2, v0): the one opposite corner
+        # k is edge 3 f + (k + 1) % 3; its unique index comes from the mesh's cached inverse.
+        inverse = mesh.edges_unique_inverse
+        edge_normal = np.zeros((len(mesh.edges_unique), 3))
+        np.add.at(edge_normal, inverse, np.repeat(fn, 3, axis=0))
         k = np.argmax(on_zero[edge_points], axis=1)
-        normal[edge_points] = edge_normal[inverse.ravel()[3 * tri[edge_points] + k]]
+        normal[edge_points] = edge_normal[inverse[3 * tri[edge_points] + (k + 1) % 3]]
     corner_points = np.flatnonzero(zeros >= 2)
-    if len(corner_points):
-        vertex_normal = trimesh.geometry.weighted_vertex_normals(
-            len(mesh.vertices), faces, fn, mesh.face_angles)
-        corner = faces[tri[corner_points], np.argmax(bary[corner_points], axis=1)]
-        normal[corner_points] = vertex_normal[corner]
+    if len(corner_points):  # trimesh's vertex normals are angle-weighted (and cached)
+        corner = mesh.faces[tri[corner_points], np.argmax(bary[corner_points], axis=1)]
+        normal[corner_points] = mesh.vertex_normals[corner]
     side = np.sign(np.einsum("ij,ij->i", points - closest, normal))
     return np.where(side < 0, -1.0, 1.0)
 

@@ -198,11 +198,13 @@ def _part_path(out: Path, scene: str, resolution: str, fabric: str) -> Path:
 
 
 def _plan_signature(plan: Plan, scene: str) -> dict:
-    """What a finished part depends on: a part measured under another plan is not reused."""
-    return {"configs": plan.configs, "resolutions": plan.resolutions.get(scene, []),
-            "reference_start": plan.reference_start, "reference_levels":
-            plan.reference_levels, "blender_qualities": plan.blender_qualities,
-            "blender_converged": plan.blender_converged}
+    """What a finished part depends on (a part measured under another plan is not reused), in
+    its JSON form (lists, not tuples) so that it compares equal to a saved part's."""
+    return json.loads(json.dumps({
+        "configs": plan.configs, "resolutions": plan.resolutions.get(scene, []),
+        "reference_start": plan.reference_start, "reference_levels": plan.reference_levels,
+        "blender_qualities": plan.blender_qualities,
+        "blender_converged": plan.blender_converged}))
 
 
 def _rejected_row(scene: str, fabric: str, resolution: str, solver: str, sub: int, it: int,
@@ -302,10 +304,9 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
     for scene_name, resolution in plan.scenes:
         for fabric in plan.fabrics:
             path = _part_path(out, scene_name, resolution, fabric)
-            wanted = json.loads(json.dumps(_plan_signature(plan, scene_name)))
             if path.exists():
                 part = json.loads(path.read_text())
-                if reusable(part, wanted, have_blender):
+                if reusable(part, _plan_signature(plan, scene_name), have_blender):
                     log(f"{part['key']}: reusing {path} ({part['minutes']:.0f} min)")
                     parts.append(part)
                     continue
