@@ -976,6 +976,15 @@ def xpbd_frame(
             lam_b[b] = vec3(0.0)
         for it in range(n_iter):
             reverse = (sweep0 + k * n_iter + it) % 2
+            # Bending: the first sweep only, before the springs (see XPBDSolver.substep).
+            nb = n_bends
+            if it > 0:
+                nb = 0
+            for m in range(nb):
+                b = m
+                if reverse != 0:
+                    b = nb - 1 - m
+                bend_gs_one(b, x, xp, w, bends, kw, bcomp, bbeta, lam_b, h, omega)
             for si in range(n_sets):
                 lo = set_ranges[si][0]
                 hi = set_ranges[si][1]
@@ -986,14 +995,6 @@ def xpbd_frame(
                     spring_gs_one(
                         e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, h, omega
                     )
-            nb = n_bends  # bending: the first sweep only (see XPBDSolver.substep)
-            if it > 0:
-                nb = 0
-            for m in range(nb):
-                b = m
-                if reverse != 0:
-                    b = nb - 1 - m
-                bend_gs_one(b, x, xp, w, bends, kw, bcomp, bbeta, lam_b, h, omega)
         if ti.static(use_collision):
             # The body at this substep's start and end, once, instead of per cloth vertex.
             for j in range(b0.shape[0]):
