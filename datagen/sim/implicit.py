@@ -55,6 +55,7 @@ class ImplicitSolver(ClothSolver):
             cat = {k: np.zeros(0, NP_REAL) for k in ("rest", "k_t", "k_c", "beta")}
             sp = np.zeros((0, 2), np.int32)
         self.n_springs = len(sp)
+        self.blocks = ti.ndarray(IK.mat3, max(1, len(sp)))
         self.all_springs = _nd(ti.math.ivec2, sp.astype(np.int32))
         self.all_rest = _nd(REAL, cat["rest"])
         self.all_kt = _nd(REAL, cat["k_t"])
@@ -92,7 +93,7 @@ class ImplicitSolver(ClothSolver):
         self.Q.from_numpy(Q)
         IK.newton_solve(
             self.x, self.xn, self.v, self.mass, self.drag, self.pinned,
-            self.g, self.r, self.z, self.p, self.hp, self.dx, self.diag,
+            self.g, self.r, self.z, self.p, self.hp, self.dx, self.diag, self.blocks,
             self.all_springs, self.all_rest, self.all_kt, self.all_kc, self.all_beta,
             self.bends, self.kw, self.bstiff, self.bbeta,
             self.P, self.Q, self.stats,

@@ -94,10 +94,13 @@ def gradient_all(x: V3, xn: V3, vn: V3, mass: F1, drag: F1, g: V3, springs: I2, 
 
 
 @ti.func
-def preconditioner(x: V3, mass: F1, drag: F1, diag: M3, pinned: I1, springs: I2, rest: F1,
-                   k_t: F1, k_c: F1, beta: F1, bends: I4, kw: V4, stiff: F1, bbeta: F1, h: REAL,
-                   n_springs: ti.i32, n_bends: ti.i32, use_air: ti.template()):
-    """Inverses of the Hessian's 3x3 diagonal blocks (block Jacobi); zero on pinned vertices."""
+def preconditioner(x: V3, mass: F1, drag: F1, diag: M3, blocks: M3, pinned: I1, springs: I2,
+                   rest: F1, k_t: F1, k_c: F1, beta: F1, bends: I4, kw: V4, stiff: F1,
+                   bbeta: F1, h: REAL, n_springs: ti.i32, n_bends: ti.i32,
+                   use_air: ti.template()):
+    """Inverses of the Hessian's 3x3 diagonal blocks (block Jacobi); zero on pinned vertices.
+    Each spring's Hessian block is kept in `blocks` for the CG iterations of this Newton step
+    (recomputing it in every Hessian product cost a norm and two outer products per spring)."""
     for i in range(x.shape[0]):
         dd = mass[i] / (h * h)
         if ti.static(use_air):
@@ -105,6 +108,7 @@ def preconditioner(x: V3, mass: F1, drag: F1, diag: M3, pinned: I1, springs: I2,
         diag[i] = dd * ti.Matrix.identity(REAL, 3)
     for e in range(n_springs):
         hb = spring_block(x, springs, rest, k_t, k_c, beta, e, h)
+        blocks[e] = hb
         diag[springs[e][0]] += hb
         diag[springs[e][1]] += hb
     for b in range(n_bends):
@@ -121,17 +125,16 @@ def preconditioner(x: V3, mass: F1, drag: F1, diag: M3, pinned: I1, springs: I2,
 
 
 @ti.func
-def hessian_times(x: V3, mass: F1, drag: F1, p: V3, out: V3, pinned: I1, springs: I2,
-                  rest: F1, k_t: F1, k_c: F1, beta: F1, bends: I4, kw: V4, stiff: F1, bbeta: F1,
-                  h: REAL, n_springs: ti.i32, n_bends: ti.i32, use_air: ti.template()):
-    for i in range(x.shape[0]):
+def hessian_times(mass: F1, drag: F1, p: V3, out: V3, pinned: I1, springs: I2, blocks: M3,
+                  bends: I4, kw: V4, stiff: F1, bbeta: F1, h: REAL, n_springs: ti.i32,
+                  n_bends: ti.i32, use_air: ti.template()):
+    for i in range(p.shape[0]):
         dd = mass[i] / (h * h)
         if ti.static(use_air):
             dd += drag[i] / h
         out[i] = dd * p[i]
     for e in range(n_springs):
-        hb = spring_block(x, springs, rest, k_t, k_c, beta, e, h)
-        r = hb @ (p[springs[e][0]] - p[springs[e][1]])
+        r = blocks[e] @ (p[springs[e][0]] - p[springs[e][1]])
         out[springs[e][0]] += r
         out[springs[e][1]] -= r
     for b in range(n_bends):
@@ -141,7 +144,7 @@ def hessian_times(x: V3, mass: F1, drag: F1, p: V3, out: V3, pinned: I1, springs
         coef = stiff[b] * (1.0 + bbeta[b] / h)
         for q in ti.static(range(4)):
             out[s[q]] += coef * k[q] * cp
-    for i in range(x.shape[0]):
+    for i in range(p.shape[0]):
         if pinned[i] != 0:
             out[i] = p[i]  # Dirichlet rows: pinned vertices do not move in the solve
 
@@ -149,7 +152,7 @@ def hessian_times(x: V3, mass: F1, drag: F1, p: V3, out: V3, pinned: I1, springs
 @ti.kernel
 def newton_solve(
     x: V3, xn: V3, vn: V3, mass: F1, drag: F1, pinned: I1,
-    g: V3, r: V3, z: V3, p: V3, hp: V3, dx: V3, diag: M3,
+    g: V3, r: V3, z: V3, p: V3, hp: V3, dx: V3, diag: M3, blocks: M3,
     springs: I2, rest: F1, k_t: F1, k_c: F1, beta: F1,
     bends: I4, kw: V4, stiff: F1, bbeta: F1,
     P: F1, Q: I1, stats: I1,
@@ -170,8 +173,8 @@ def newton_solve(
     for _newton in range(Q[Q_NEWTON_MAX]):
         gradient_all(x, xn, vn, mass, drag, g, springs, rest, k_t, k_c, beta, bends, kw, stiff,
                      bbeta, gravity, wind, h, n_springs, n_bends, use_gravity, use_air)
-        preconditioner(x, mass, drag, diag, pinned, springs, rest, k_t, k_c, beta, bends, kw,
-                       stiff, bbeta, h, n_springs, n_bends, use_air)
+        preconditioner(x, mass, drag, diag, blocks, pinned, springs, rest, k_t, k_c, beta, bends,
+                       kw, stiff, bbeta, h, n_springs, n_bends, use_air)
         rz = ti.cast(0.0, ti.f64)
         for i in range(n):
             ri = -g[i]
@@ -186,8 +189,8 @@ def newton_solve(
         rz0 = rz
         it = 0
         while it < Q[Q_CG_MAX] and rz > cg_tol * cg_tol * rz0 and rz > 1e-30:
-            hessian_times(x, mass, drag, p, hp, pinned, springs, rest, k_t, k_c, beta, bends,
-                          kw, stiff, bbeta, h, n_springs, n_bends, use_air)
+            hessian_times(mass, drag, p, hp, pinned, springs, blocks, bends, kw, stiff, bbeta, h,
+                          n_springs, n_bends, use_air)
             php = ti.cast(0.0, ti.f64)
             for i in range(n):
                 php += ti.cast(p[i].dot(hp[i]), ti.f64)
