@@ -16,6 +16,9 @@ from datagen.sim.simulate import ColliderTrack
 from datagen.types import Garment
 
 FPS = 30.0
+# Output frames after frame 0, by scene. The body scenes stop at the end of the measured second
+# (their lead-in and settle come before it): every extra frame costs minutes of reference.
+SCENE_FRAMES = {"sheet_sphere": 60, "tube_cylinder": 60, "skirt_body": 30, "tshirt_walk": 30}
 SHEET_SIZES = {"coarse": 32, "4k": 64, "10k": 100}
 TUBE_SIZES = {"coarse": (48, 24), "5k": (100, 50), "10k": (140, 70)}
 
@@ -37,7 +40,8 @@ class StudyScene:
         return sum(len(g.vertices) for g in self.garments)
 
 
-def sheet_sphere(fabric: str, resolution: str = "4k", frames: int = 60) -> StudyScene:
+def sheet_sphere(fabric: str, resolution: str = "4k",
+                 frames: int = SCENE_FRAMES["sheet_sphere"]) -> StudyScene:
     """A 1 m sheet released 25 cm above a 0.5 m sphere: it falls, hits at ~0.25 s and drapes."""
     n = SHEET_SIZES[resolution]
     sheet = grid_sheet(n, 1.0, 0.5, fabric=fabric)
@@ -59,7 +63,8 @@ def _rz(angle: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def tube_cylinder(fabric: str, resolution: str = "5k", frames: int = 60) -> StudyScene:
+def tube_cylinder(fabric: str, resolution: str = "5k",
+                  frames: int = SCENE_FRAMES["tube_cylinder"]) -> StudyScene:
     """A skirt-like tube hanging from a swinging, twisting cylinder (its top ring pinned)."""
     around, along = TUBE_SIZES[resolution]
     cv, cf = cylinder_mesh(0.10, 0.6, sections=64, rings=30)
@@ -87,7 +92,7 @@ def _walking_body(action: str, frames: int, lead_in: int):
 
 
 def garment_on_body(name: str, template: str, action: str, fabric: str,
-                    frames: int = 45) -> StudyScene:
+                    frames: int = SCENE_FRAMES["tshirt_walk"]) -> StudyScene:
     """A shipped template (neutral female body, no shaping or cuts) on a body moving through a
     procedural action; the lead-in is part of the scene (the measure starts when it ends)."""
     from datagen.body.anny_model import default_body_model
@@ -108,7 +113,7 @@ def build_scene(name: str, fabric: str, resolution: str = "", frames: int | None
     """A study scene by name. `frames` shortens or lengthens it; `perturb` (metres) moves every
     cloth vertex of the start by that distance in a fixed random direction: the twin run that
     shows how soon the scene's chaos makes trajectories unpredictable."""
-    extra = {} if frames is None else {"frames": frames}
+    extra = {"frames": frames if frames is not None else SCENE_FRAMES.get(name, 60)}
     if name == "sheet_sphere":
         scene = sheet_sphere(fabric, resolution or "4k", **extra)
     elif name == "tube_cylinder":
