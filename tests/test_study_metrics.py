@@ -109,3 +109,42 @@ def test_report_only_names_the_parts_not_measured_yet(tmp_path):
     assert rows == [row]
     expected = [f"{s}/{f}" for s, _ in plan.scenes for f in plan.fabrics][1:]
     assert summary["missing_parts"] == expected
+
+
+def test_a_failing_finer_rung_ends_the_reference_ladder(monkeypatch):
+    """The study's denim sheet was rejected at 160 substeps (a whipping corner tripped the
+    runaway guard) and the exception ended the whole study. A finer rung that fails now ends
+    the ladder at the last rung that ran, which becomes the reference, and the ladder records
+    why; a failing first rung still raises (there is no reference at all). The worker is
+    replaced: this is about the ladder's bookkeeping, not the solver."""
+    from datagen.study import sweep
+
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(31, 50, 3))
+    calls = []
+
+    def fake_worker(scene, fabric, resolution, solver, substeps, iterations, fp64,
+                    frames=None, perturb=0.0):
+        calls.append((substeps, perturb))
+        if substeps >= 160:
+            raise RuntimeError("study worker failed: ...\nRejectedSequence: runaway velocity")
+        shift = 0.0 if perturb == 0.0 else 2e-4 * np.arange(31)[:, None, None]
+        return {"positions": base + shift + 0.1 / substeps, "wall": np.float64(1.0)}
+
+    monkeypatch.setattr(sweep, "run_worker", fake_worker)
+    plan = sweep.full_plan()
+    ref, ladder, predictable = sweep.reference_ladder("sheet_sphere", "denim", "4k", plan, 31,
+                                                      lambda _: None)
+    assert [e["substeps"] for e in ladder] == [40, 80, 160]
+    assert ladder[-1]["failed"].endswith("runaway velocity")
+    assert np.allclose(ref, base + 0.1 / 80)  # the last rung that ran
+    assert predictable == 3  # the twin is 1.04 mm away (RMS) at frame 3
+    assert ladder[1]["rms_to_previous_mm"] == pytest.approx(1000 * (0.1 / 40 - 0.1 / 80)
+                                                            * np.sqrt(3))
+
+    def failing_first(*args, **kwargs):
+        raise RuntimeError("study worker failed: boom")
+
+    monkeypatch.setattr(sweep, "run_worker", failing_first)
+    with pytest.raises(RuntimeError, match="boom"):
+        sweep.reference_ladder("sheet_sphere", "denim", "4k", plan, 31, lambda _: None)

@@ -53,6 +53,11 @@ class SimOptions:
     tolerance: float = 1e-5  # implicit: Newton stops below this update (m)
     cg_tolerance: float = 1e-4  # implicit: relative residual of each CG solve
     cg_max_iterations: int = 200
+    # m/s: a cloth vertex faster than this (and 3x the body's fastest) is a runaway. Converged
+    # references raise it: a free corner of a heavy sheet whips past 15 m/s for a frame when the
+    # step is so fine that backward Euler no longer damps it (the study's denim sheet, 16.7 m/s
+    # at 160 substeps, back under 4 m/s two frames later).
+    speed_limit: float = SPEED_LIMIT
 
     def resolve_steps(self) -> tuple[int, int]:
         presets = QUALITY_PRESETS.get(self.solver)
@@ -271,10 +276,10 @@ class _Simulation:
 
     def _speed_limit(self, f0: int, f1: int) -> float:
         if self.body is None:
-            return SPEED_LIMIT
+            return self.options.speed_limit
         body_speed = np.linalg.norm(
             self.body.vertices[f1] - self.body.vertices[f0], axis=1).max() * self.fps
-        return max(SPEED_LIMIT, 3.0 * float(body_speed))
+        return max(self.options.speed_limit, 3.0 * float(body_speed))
 
     def _frame(self, solver, f0: int, f1: int, profile: bool, search: bool = True) -> str | None:
         """Advance one frame; returns a failure reason or None."""

@@ -92,6 +92,9 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
     ]
     for key, ladder in summary["ladders"].items():
         for e in ladder:
+            if "failed" in e:
+                lines.append(f"| {key} | {e['substeps']} | failed: {e['failed']} | | |")
+                continue
             lines.append(f"| {key} | {e['substeps']} | {e['seconds']:.0f} | "
                          f"{_fmt(e.get('rms_to_previous_mm', np.nan), 3)} | "
                          f"{_fmt(e.get('rms_1s_to_previous_mm', np.nan), 3)} |")

@@ -28,11 +28,13 @@ _WARM: set = set()
 
 
 def run_ours(scene: StudyScene, solver: str, substeps: int, iterations: int,
-             label: str = "", settings=None, effects: str = "auto") -> Run:
-    """Simulate the scene; `settings` (a SolverSettings) may set the implicit tolerances."""
-    extra = {}
+             label: str = "", settings=None, effects: str = "auto",
+             speed_limit: float | None = None) -> Run:
+    """Simulate the scene; `settings` (a SolverSettings) may set the implicit tolerances and
+    `speed_limit` the runaway guard (SimOptions.speed_limit)."""
+    extra = {} if speed_limit is None else {"speed_limit": speed_limit}
     if settings is not None:
-        extra = dict(tolerance=settings.tolerance, cg_tolerance=settings.cg_tolerance,
+        extra.update(tolerance=settings.tolerance, cg_tolerance=settings.cg_tolerance,
                      cg_max_iterations=settings.cg_max_iterations)
     # The study measures fixed settings: no frame is redone for its strain (dataset runs do
     # that; its cost shows in benchmarks/bench_dataset.py).

@@ -142,7 +142,17 @@ def reference_ladder(scene: str, fabric: str, resolution: str, plan: Plan, horiz
     substeps = plan.start_for(scene)
     finest, predictable = None, horizon
     for level in range(plan.reference_levels):
-        d = run_worker(scene, fabric, resolution, "implicit", substeps, 20, fp64=True)
+        try:
+            d = run_worker(scene, fabric, resolution, "implicit", substeps, 20, fp64=True)
+        except RuntimeError as exc:
+            if previous is None:
+                raise
+            # A finer rung that fails (a rejection, a crash) ends the ladder at the last one
+            # that ran; the report shows the failure in its place.
+            reason = str(exc).strip().splitlines()[-1][-300:]
+            ladder.append({"substeps": substeps, "failed": reason})
+            log(f"  reference implicit {substeps} substeps failed: {reason}")
+            break
         entry = {"substeps": substeps, "seconds": float(d["wall"])}
         if previous is None:
             twin = run_worker(scene, fabric, resolution, "implicit", substeps, 20, True,
