@@ -11,7 +11,6 @@ import os
 import sys
 import time
 
-
 REFERENCE_SPEED_LIMIT = 60.0  # m/s
 
 
