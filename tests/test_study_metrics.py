@@ -148,3 +148,26 @@ def test_a_failing_finer_rung_ends_the_reference_ladder(monkeypatch):
     monkeypatch.setattr(sweep, "run_worker", failing_first)
     with pytest.raises(RuntimeError, match="boom"):
         sweep.reference_ladder("sheet_sphere", "denim", "4k", plan, 31, lambda _: None)
+
+
+def test_reading_states_what_the_rows_show():
+    """The report's reading is computed from the rows: an error falling as 1/substeps reads as
+    order 1.00, a preset beaten in time and error by another run on the same mesh is off the
+    front (named, with the speed-up), and a coarser mesh's rows do not push a preset off."""
+    from datagen.study.report import convergence_order, reading
+    from datagen.study.sweep import Row
+
+    def row(sub, it, seconds, mm, resolution="4k", note="", vertices=4225):
+        return Row("sheet_sphere", "cotton", resolution, "xpbd", sub, it, vertices, seconds,
+                   mm, mm, mm, mm, 0.1, 0.0, "ok", note)
+
+    rows = [row(s, 1, 0.03 * s, 40.0 / s) for s in (5, 10, 20, 40)]
+    rows += [row(20, 4, 1.5, 2.5), row(10, 2, 0.35, 3.5)]
+    rows.append(row(40, 1, 0.4, 0.5, "coarse", "measured at the reference mesh's vertices",
+                    1089))
+    assert convergence_order(rows) == pytest.approx(1.0)
+    text = "\n".join(reading(rows, {"default": (20, 4), "draft": (10, 2)}))
+    assert "substeps^-1.00" in text
+    assert "**`default`** (20x4) is off the front: xpbd 40x1 is 1.25x faster" in text
+    assert "**`draft`** (10x2) is on the front." in text
+    assert "coarse 40x1: 0.50x the error in 0.33x the time" in text
