@@ -89,6 +89,7 @@ class ImplicitSolver(ClothSolver):
         Q[IK.Q_N_BENDS] = self.n_bends
         Q[IK.Q_NEWTON_MAX] = max(1, st.iterations)
         Q[IK.Q_CG_MAX] = st.cg_max_iterations
+        Q[IK.Q_FORCING] = int(st.cg_forcing)
         self.P.from_numpy(P)
         self.Q.from_numpy(Q)
         IK.newton_solve(

@@ -53,6 +53,7 @@ class SimOptions:
     tolerance: float = 1e-5  # implicit: Newton stops below this update (m)
     cg_tolerance: float = 1e-4  # implicit: relative residual of each CG solve
     cg_max_iterations: int = 200
+    cg_forcing: bool = False  # implicit: inexact Newton (SolverSettings.cg_forcing)
     # m/s: a cloth vertex faster than this (and 3x the body's fastest) is a runaway. Converged
     # references raise it: a free corner of a heavy sheet whips past 15 m/s for a frame when the
     # step is so fine that backward Euler no longer damps it (the study's denim sheet, 16.7 m/s
@@ -257,6 +258,7 @@ class _Simulation:
             tolerance=self.options.tolerance,
             cg_tolerance=self.options.cg_tolerance,
             cg_max_iterations=self.options.cg_max_iterations,
+            cg_forcing=self.options.cg_forcing,
             wind=tuple(self.options.wind) if self.options.wind else (0.0, 0.0, 0.0),
         )
         return make_solver(self.options.solver, self.model, self.effects, settings)

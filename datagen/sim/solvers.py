@@ -40,6 +40,9 @@ class SolverSettings:
     tolerance: float = 1e-5  # implicit: Newton stops when the update is below this (m)
     cg_tolerance: float = 1e-4  # implicit: relative residual of each CG solve
     cg_max_iterations: int = 200
+    # implicit: loosen each CG solve while Newton is far from converged (the references, which
+    # run Newton to its tolerance; with a Newton cap it would leave steps less converged)
+    cg_forcing: bool = False
 
 
 def fresh_guards(n: int) -> np.ndarray:

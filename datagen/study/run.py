@@ -35,7 +35,8 @@ def run_ours(scene: StudyScene, solver: str, substeps: int, iterations: int,
     extra = {} if speed_limit is None else {"speed_limit": speed_limit}
     if settings is not None:
         extra.update(tolerance=settings.tolerance, cg_tolerance=settings.cg_tolerance,
-                     cg_max_iterations=settings.cg_max_iterations)
+                     cg_max_iterations=settings.cg_max_iterations,
+                     cg_forcing=settings.cg_forcing)
     # The study measures fixed settings: no frame is redone for its strain (dataset runs do
     # that; its cost shows in benchmarks/bench_dataset.py).
     options = SimOptions(solver=solver, substeps=substeps, iterations=iterations,

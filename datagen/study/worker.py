@@ -37,7 +37,10 @@ def main(argv: list[str] | None = None) -> int:
 
     scene = build_scene(args.scene, args.fabric, args.resolution, args.frames, args.perturb)
     t = time.perf_counter()
-    settings = SolverSettings(tolerance=1e-7, cg_tolerance=1e-6, cg_max_iterations=1000)
+    # Newton runs to 1e-7 m; inexact CG (cg_forcing) reaches the same answer with ~6x fewer CG
+    # iterations (the walking t-shirt: 12,600 -> 2,000 per frame at 10 substeps).
+    settings = SolverSettings(tolerance=1e-7, cg_tolerance=1e-6, cg_max_iterations=1000,
+                              cg_forcing=True)
     # The float64 runs are the converged references: see SimOptions.speed_limit.
     limit = REFERENCE_SPEED_LIMIT if args.fp64 else None
     run = run_ours(scene, args.solver, args.substeps, args.iterations, settings=settings,
