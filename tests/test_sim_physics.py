@@ -367,10 +367,10 @@ def test_one_xpbd_iteration_stays_stable_at_first_contact():
 
 def test_inexact_newton_reaches_the_same_steps_with_fewer_cg_iterations():
     """cg_forcing loosens each CG solve while Newton is far from converged (Eisenstat and
-    Walker). Newton still stops on its update, so a swinging sheet (no contact: not chaotic)
-    takes the same path as with every CG solve to 1e-6, within the Newton tolerance's reach,
-    for under half the CG iterations (measured in float32: 1.1 um apart, 11805 against 4112
-    CG iterations, 192 against 235 Newton iterations)."""
+    Walker) and solves exactly again once the update is within 10x the tolerance. Newton still
+    stops on its update, so a swinging sheet (no contact: not chaotic) takes the same path as
+    with every CG solve to 1e-6, within the Newton tolerance's reach, for fewer CG iterations
+    (measured in float32: 1.4 um apart, 11805 against 7079 CG iterations)."""
     sheet = hanging_sheet(n=16, size=0.4)
     model = build_cloth_model([(sheet, FABRICS["cotton"])])
     effects = Effects(body_collision=False, friction=False, pins=True)
@@ -387,5 +387,5 @@ def test_inexact_newton_reaches_the_same_steps_with_fewer_cg_iterations():
     (exact, cg_exact, _), (inexact, cg_inexact, unconverged) = runs[False], runs[True]
     assert exact[:, 2].min() < 0.9  # it swung down
     assert np.linalg.norm(exact - inexact, axis=1).max() < 2e-5
-    assert cg_inexact < 0.5 * cg_exact, (cg_inexact, cg_exact)
+    assert cg_inexact < 0.75 * cg_exact, (cg_inexact, cg_exact)
     assert unconverged == 0
