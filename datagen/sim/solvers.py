@@ -534,21 +534,8 @@ class XPBDSolver(ClothSolver):
             bend = it == 0
             if self.gauss_seidel:
                 if self.n_bends and bend:
-                    self._run(
-                        "bending",
-                        K.bends_gauss_seidel,
-                        self.x,
-                        self.xp,
-                        self.w,
-                        self.bends,
-                        self.kw,
-                        self.bcomp,
-                        self.bbeta,
-                        self.lam_b,
-                        h,
-                        reverse,
-                        self.settings.sor,
-                    )
+                    self._run("bending", K.bends_gauss_seidel, *self._bend_args(), h, reverse,
+                              self.settings.sor)
                 for name, s in self.sets.items():
                     self._run(
                         name,
@@ -583,6 +570,11 @@ class XPBDSolver(ClothSolver):
             h,
         )
 
+    def _bend_args(self) -> tuple:
+        """The bending kernels' leading arguments (positions, stencils, weights, compliance,
+        damping, multipliers), shared by the Gauss-Seidel and Jacobi sweeps."""
+        return (self.x, self.xp, self.w, self.bends, self.kw, self.bcomp, self.bbeta, self.lam_b)
+
     def _jacobi_iteration(self, h: float, bend: bool) -> None:
         omega = self.settings.jacobi_omega
         for name, s in self.sets.items():
@@ -604,20 +596,7 @@ class XPBDSolver(ClothSolver):
             )
         bend = bend and self.n_bends > 0
         if bend:
-            self._run(
-                "bending",
-                K.bends_jacobi,
-                self.x,
-                self.xp,
-                self.w,
-                self.bends,
-                self.kw,
-                self.bcomp,
-                self.bbeta,
-                self.lam_b,
-                self.b_out,
-                h,
-            )
+            self._run("bending", K.bends_jacobi, *self._bend_args(), self.b_out, h)
         names = list(self.sets)
         for k, name in enumerate(names):
             ptr, ref = self.jacobi[name]
