@@ -51,8 +51,8 @@ def comparison(rows: list[Row], presets: dict[str, tuple[int, int]]) -> list[str
             # Why: how much of the default's time buys accuracy beyond Blender's, i.e. what our
             # cheapest run on the same mesh at Blender's error would give.
             same_mesh = [r for r in rows if (r.scene, r.fabric) == (scene, fabric)
-                         and r.series != "blender" and r.note == "" and r.status == "ok"
-                         and np.isfinite(r.rms_mm) and r.rms_mm <= b.rms_mm]
+                         and r.series != "blender" and r.note == "" and _measured(r)
+                         and r.rms_mm <= b.rms_mm]
             if ratio < 20 and same_mesh:
                 c = min(same_mesh, key=lambda r: r.seconds_per_sim_second)
                 line += (f" Part of the gap is accuracy: the default's error is "
@@ -72,10 +72,15 @@ def comparison(rows: list[Row], presets: dict[str, tuple[int, int]]) -> list[str
     return lines
 
 
+def _other_mesh(r: Row) -> bool:
+    """A run on another mesh resolution than the scene's own (measured at its vertices)."""
+    return r.note.startswith("measured at the reference")
+
+
 def _label(r: Row) -> str:
     if r.series == "blender":
         return f"Blender q{r.substeps}"
-    extra = f" {r.resolution}" if r.note.startswith("measured at the reference") else ""
+    extra = f" {r.resolution}" if _other_mesh(r) else ""
     return f"{r.series} {r.substeps}x{r.iterations}{extra}"
 
 
@@ -106,7 +111,7 @@ def reading(rows: list[Row], presets: dict[str, tuple[int, int]]) -> list[str]:
         lines += [f"### {scene}, {fabric}", ""]
         # The presets choose steps for a given mesh: the front is drawn among the runs on the
         # scene's own mesh; other meshes have their own bullet.
-        same = [r for r in mine if not r.note.startswith("measured at the reference")]
+        same = [r for r in mine if not _other_mesh(r)]
         front = [same[i] for i in pareto([(r.seconds_per_sim_second, r.rms_mm) for r in same])]
         lines.append(f"- **Front** on the scene's mesh ({same[0].resolution}; no run is both "
                      "faster and closer to the reference): "
@@ -130,7 +135,7 @@ def reading(rows: list[Row], presets: dict[str, tuple[int, int]]) -> list[str]:
                 f"{len(pairs)} pairs and faster in {faster} ("
                 + "; ".join(f"{_label(a)} {_fmt(a.rms_mm)} mm against {_label(b)} "
                             f"{_fmt(b.rms_mm)} mm" for a, b in pairs) + ").")
-        other = [r for r in mine if r.note.startswith("measured at the reference")]
+        other = [r for r in mine if _other_mesh(r)]
         if other:
             parts = []
             for r in other:
