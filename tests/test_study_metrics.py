@@ -109,6 +109,11 @@ def test_report_only_names_the_parts_not_measured_yet(tmp_path):
     assert rows == [row]
     expected = [f"{s}/{f}" for s, _ in plan.scenes for f in plan.fabrics][1:]
     assert summary["missing_parts"] == expected
+    # --part measures only the parts named: the finished one is reused, the rest not run
+    summary, rows = run_study(tmp_path, blender=False, only={part["key"]}, log=lambda _: None)
+    assert rows == [row] and summary["missing_parts"] == expected
+    with pytest.raises(click.UsageError, match="tshirt_walk/silk: not a part of the full plan"):
+        run_study(tmp_path, blender=False, only={"tshirt_walk/silk"}, log=lambda _: None)
 
 
 def test_a_failing_finer_rung_ends_the_reference_ladder(monkeypatch):
@@ -171,3 +176,26 @@ def test_reading_states_what_the_rows_show():
     assert "**`default`** (20x4) is off the front: xpbd 40x1 is 1.25x faster" in text
     assert "**`draft`** (10x2) is on the front." in text
     assert "coarse 40x1: 0.50x the error in 0.33x the time" in text
+
+
+def test_body_scenes_start_from_one_settled_state(tmp_path, monkeypatch):
+    """Every run of a body scene starts from one cached settled state. A float64 study worker
+    must find it cached (its own settle would start its runs elsewhere); the start keeps the
+    template's rest metric, and the waist the skirt is pinned by is on the body."""
+    import trimesh
+
+    from datagen.study.scenes import build_scene
+
+    monkeypatch.setenv("DATAGEN_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("DATAGEN_SIM_FP64", "1")
+    with pytest.raises(RuntimeError, match="settled start of study scene skirt_body"):
+        build_scene("skirt_body", "cotton", frames=2)
+    monkeypatch.delenv("DATAGEN_SIM_FP64")
+    short = build_scene("skirt_body", "cotton", frames=2)
+    longer = build_scene("skirt_body", "cotton", frames=4)  # the cached start
+    a, b = short.garments[0], longer.garments[0]
+    np.testing.assert_array_equal(a.vertices, b.vertices)
+    assert np.abs(a.vertices - a.rest).max() > 0.05  # it is on the body, not at the rest
+    body = trimesh.Trimesh(short.track.vertices[0], short.track.faces, process=False)
+    _, gap, _ = trimesh.proximity.closest_point(body, a.vertices[a.pinned])
+    assert gap.max() < 0.02, gap.max()

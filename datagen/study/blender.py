@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from datagen.sim.fabrics import BLENDER_PRESETS, get_fabric
-from datagen.sim.simulate import attach_pins, body_start_transform
+from datagen.sim.simulate import attach_pins
 from datagen.study.run import Run
 from datagen.study.scenes import StudyScene
 
@@ -36,6 +36,9 @@ def blender_version() -> str:
 def scene_input(scene: StudyScene, quality: int) -> dict:
     """The npz payload for blender_scene.py."""
     x0 = np.concatenate([g.vertices for g in scene.garments]).astype(np.float64)
+    # The body scenes start draped (stretched under gravity): Blender takes its rest lengths and
+    # angles from a shape key holding the garments' rest metric, as ours does.
+    rest = np.concatenate([g.rest for g in scene.garments]).astype(np.float64)
     faces, offset = [], 0
     pinned = []
     for g in scene.garments:
@@ -43,28 +46,22 @@ def scene_input(scene: StudyScene, quality: int) -> dict:
         if g.pinned is not None:
             pinned.append(np.asarray(g.pinned) + offset)
         offset += len(g.vertices)
-    if scene.body is not None:
-        rot, shift = body_start_transform(scene.body)
-        x0 = x0 @ rot.T + shift
     track = scene.track
     collider = track.vertices
-    first = 0
-    if scene.body is not None:
-        # Blender sees no settle phase: it starts at the lead-in, from the same start.
-        first = 0
-    frames = len(collider) - 1 - first
+    frames = len(collider) - 1
     pinned = np.concatenate(pinned) if pinned else np.zeros(0, np.int64)
     pin_frames = np.zeros((frames + 1, len(pinned), 3))
     if len(pinned):
-        pins = attach_pins(x0[pinned], collider[first].astype(np.float64), track.faces,
+        pins = attach_pins(x0[pinned], collider[0].astype(np.float64), track.faces,
                            track.face_mask)
-        pin_frames = np.array([pins.targets(collider[first + f].astype(np.float64), track.faces)
+        pin_frames = np.array([pins.targets(collider[f].astype(np.float64), track.faces)
                                for f in range(frames + 1)])
     fabric = scene.garments[0].fabric
     preset = BLENDER_PRESETS[fabric]
     used = np.flatnonzero(track.face_mask)
     return dict(
-        cloth_vertices=x0, cloth_faces=np.concatenate(faces), collider_frames=collider[first:],
+        cloth_vertices=x0, rest_vertices=rest, cloth_faces=np.concatenate(faces),
+        collider_frames=collider,
         collider_faces=track.faces[used], fps=track.fps, frames=frames, quality=quality,
         mass=preset.mass, tension=preset.tension, compression=preset.compression,
         shear=preset.shear, bending=preset.bending, tension_damping=preset.tension_damping,

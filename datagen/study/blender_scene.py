@@ -1,7 +1,8 @@
 """Run inside Blender (`blender -b --python blender_scene.py -- IN.npz OUT.npz`): simulate one of
 our study scenes with Blender's own cloth solver and write the per-frame positions and timings.
 
-IN.npz holds the cloth (`cloth_vertices`, `cloth_faces`), the collider's frames
+IN.npz holds the cloth (`cloth_vertices`, `cloth_faces`, and `rest_vertices`: the rest metric
+when it differs from the start), the collider's frames
 (`collider_frames` (F+1, Vc, 3), `collider_faces`), optional `pinned` vertex ids with their
 per-frame targets `pin_frames` (F+1, P, 3), and the settings (`fps`, `frames`, `quality`, the
 preset values, `collision_distance`, `collision_quality`, `self_collision`,
@@ -54,6 +55,16 @@ def main():
     s.bending_damping = float(d["bending_damping"])
     mod.point_cache.frame_start = 1
     mod.point_cache.frame_end = frames + 1
+    base = np.asarray(d["cloth_vertices"], dtype=np.float32)
+    rest = np.asarray(d["rest_vertices"], dtype=np.float32) if "rest_vertices" in d.files else base
+    own_rest = bool(np.abs(rest - base).max() > 0)
+    if own_rest or ("pinned" in d.files and len(d["pinned"])):
+        cloth.shape_key_add(name="basis")
+    if own_rest:
+        # Left at value 0: it shapes nothing, the cloth reads its rest lengths and angles from it.
+        key = cloth.shape_key_add(name="rest")
+        key.data.foreach_set("co", rest.ravel())
+        s.rest_shape_key = key
     c = mod.collision_settings
     c.use_collision = True
     c.distance_min = float(d["collision_distance"])
@@ -67,8 +78,6 @@ def main():
         # Pinned vertices follow the cloth object's own (pre-simulation) mesh: animate it with
         # one shape key per frame that moves the pinned vertices to their targets.
         pins = d["pin_frames"]
-        base = np.asarray(d["cloth_vertices"], dtype=np.float32)
-        cloth.shape_key_add(name="basis")
         keys = []
         for k in range(len(pins)):
             key = cloth.shape_key_add(name=f"p{k}")

@@ -26,7 +26,11 @@ def bench() -> None:
 @click.option("--report-only", is_flag=True,
               help="Run nothing: write the CSV, plot and report from the parts already "
                    "finished under OUT/parts (a stopped full run), naming the missing ones.")
-def accuracy(quick: bool, out: str, blender: bool, doc: str | None, report_only: bool) -> None:
+@click.option("--part", "parts", multiple=True, metavar="SCENE/FABRIC",
+              help="Measure only these parts of the plan (e.g. tshirt_walk/cotton; repeatable); "
+                   "the others are reused when finished and listed as missing when not.")
+def accuracy(quick: bool, out: str, blender: bool, doc: str | None, report_only: bool,
+             parts: tuple[str, ...]) -> None:
     """Sweep solvers, substeps, iterations and resolutions against a converged reference.
     Each finished scene/fabric is kept under OUT/parts and reused by the next run."""
     from datagen.study.sweep import main_cli
@@ -34,6 +38,7 @@ def accuracy(quick: bool, out: str, blender: bool, doc: str | None, report_only:
     if doc is None and REPO_DOC.parent.is_dir():
         doc = str(REPO_DOC)
     command = "datagen bench accuracy" + (" --quick" if quick else "") + f" --out {out}"
-    summary = main_cli(out, quick, blender, doc, command, measure=not report_only)
+    summary = main_cli(out, quick, blender, doc, command, measure=not report_only,
+                       only=set(parts) or None)
     click.echo(f"{out}: accuracy.csv, accuracy-vs-time.png; report {doc or out} "
                f"({summary['minutes']:.1f} min)")

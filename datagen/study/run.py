@@ -41,8 +41,7 @@ def run_ours(scene: StudyScene, solver: str, substeps: int, iterations: int,
     # that; its cost shows in benchmarks/bench_dataset.py).
     options = SimOptions(solver=solver, substeps=substeps, iterations=iterations,
                          effects=effects, frames=scene.frames, profile_every=0,
-                         strain_refinements=0,
-                         settle_seconds=0.5 if scene.body is not None else 0.0, **extra)
+                         strain_refinements=0, settle_seconds=0.0, **extra)
     key = (scene.name, solver, effects)
     if key not in _WARM:
         # Compile the kernels first (Taichi compiles on first launch): time only simulation.
@@ -53,12 +52,9 @@ def run_ours(scene: StudyScene, solver: str, substeps: int, iterations: int,
         simulate(scene.garments, short, warm)
         _WARM.add(key)
     t = time.perf_counter()
-    result = simulate(scene.garments, scene.body if scene.body is not None else scene.track,
-                      options)
+    result = simulate(scene.garments, scene.track, options)
     wall = time.perf_counter() - t
     positions = np.concatenate([result.vertices[g.name] for g in scene.garments], axis=1)
-    n_steps = len(positions) - 1 + (scene.body.lead_in_frames if scene.body is not None else 0)
-    settle = int(round(options.settle_seconds * scene.track.fps))
-    simulated = (n_steps + settle) / scene.track.fps
+    simulated = (len(positions) - 1) / scene.track.fps
     return Run(label or f"{solver} {substeps}x{iterations}", positions.astype(np.float64),
                wall, simulated, {k: np.asarray(v) for k, v in result.qa.items()})

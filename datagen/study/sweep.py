@@ -304,13 +304,14 @@ def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_ble
 
 def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=print,
               presets: dict[str, tuple[int, int]] | None = None,
-              measure: bool = True) -> tuple[dict, list[Row]]:
+              measure: bool = True, only: set[str] | None = None) -> tuple[dict, list[Row]]:
     """Run the plan; write the CSV, the summary and the plot (`presets` circled) into `out`.
 
     Each scene and fabric is a part, saved under `out/parts/` when it finishes: a run that is
     stopped keeps its finished parts, and the next run with the same plan reuses them (the
     full plan takes hours on 2 cores). A part's times were all measured in its own run.
-    `measure=False` only reports the finished parts and lists the missing ones."""
+    `measure=False` only reports the finished parts and lists the missing ones; `only` (keys
+    "scene/fabric") measures just those parts, to run the plan in pieces."""
     from datagen.study import blender as peer
 
     out = Path(out)
@@ -319,6 +320,10 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
     have_blender = blender and peer.blender_executable() is not None
     if blender and not have_blender:
         log("Blender is not installed: the peer series is skipped (apt-get install blender).")
+    keys = {f"{scene}/{fabric}" for scene, _ in plan.scenes for fabric in plan.fabrics}
+    if only and not only <= keys:
+        raise click.UsageError(f"--part {', '.join(sorted(only - keys))}: not a part of the "
+                               f"{'quick' if quick else 'full'} plan ({', '.join(sorted(keys))})")
     parts, missing = [], []
     for scene_name, resolution in plan.scenes:
         for fabric in plan.fabrics:
@@ -330,7 +335,7 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
                     parts.append(part)
                     continue
                 log(f"{part['key']}: {path} was measured under another plan")
-            if not measure:
+            if not measure or (only and f"{scene_name}/{fabric}" not in only):
                 missing.append(f"{scene_name}/{fabric}")
                 continue
             part = run_part(scene_name, resolution, fabric, plan, have_blender, log)
@@ -422,7 +427,7 @@ def plot(path: Path, rows: list[Row], presets: dict[str, tuple[int, int]] | None
 
 
 def main_cli(out: str, quick: bool, blender: bool, doc: str | None, command: str,
-             measure: bool = True) -> dict:
+             measure: bool = True, only: set[str] | None = None) -> dict:
     """Run the study into `out` (or, with measure=False, take its finished parts), then write
     the report to `doc`."""
     from datagen.sim.simulate import QUALITY_PRESETS
@@ -431,7 +436,7 @@ def main_cli(out: str, quick: bool, blender: bool, doc: str | None, command: str
     os.environ.setdefault("PYTHONWARNINGS", "ignore")
     presets = QUALITY_PRESETS["xpbd"]
     summary, rows = run_study(out, quick=quick, blender=blender, presets=presets,
-                              measure=measure)
+                              measure=measure, only=only)
     write_report(Path(doc) if doc else Path(out) / "accuracy-vs-time.md", Path(out), rows,
                  summary, presets, command)
     return summary
