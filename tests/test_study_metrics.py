@@ -181,11 +181,18 @@ def test_reading_states_what_the_rows_show():
 def test_body_scenes_start_from_one_settled_state(tmp_path, monkeypatch):
     """Every run of a body scene starts from one cached settled state. A float64 study worker
     must find it cached (its own settle would start its runs elsewhere); the start keeps the
-    template's rest metric, and the waist the skirt is pinned by is on the body."""
+    template's rest metric, and the waist the skirt is pinned by is on the body. (The settle
+    runs at one implicit substep per frame here: the preset's 5 take minutes.)"""
+    from dataclasses import replace
+
     import trimesh
 
+    import datagen.sim.simulate as sim
     from datagen.study.scenes import build_scene
 
+    real = sim.simulate
+    monkeypatch.setattr(sim, "simulate", lambda g, b, o: real(g, b, replace(o, substeps=1,
+                                                                             iterations=4)))
     monkeypatch.setenv("DATAGEN_CACHE_DIR", str(tmp_path))
     monkeypatch.setenv("DATAGEN_SIM_FP64", "1")
     with pytest.raises(RuntimeError, match="settled start of study scene skirt_body"):

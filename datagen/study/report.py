@@ -216,11 +216,13 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
         "- `skirt_body`: the skirt template, its waist pinned, on the neutral female body "
         "spinning; `tshirt_walk`: the t-shirt template on the same body walking (30 frames "
         "each). Both start when the body's lead-in from the rest pose ends, from one settled "
-        "state: the garment settled on the rest pose and carried through the lead-in by the "
-        "xpbd default preset, then left at rest (`datagen.study.scenes.settled_start`). Every "
-        "run, Blender's included, starts from that state with the template's rest metric, so "
-        "the measured second compares solvers on the same motion, not on how each settled "
-        "the garment.",
+        "state: the garment settled on the rest pose, carried through the lead-in and settled "
+        "again, at rest, on the motion's first pose, all by the implicit solver's default "
+        "preset (`datagen.study.scenes.settled_start`): an equilibrium of the reference's own "
+        "model, so the reference does not start with a snap that each step size damps "
+        "differently. Every run, Blender's included, starts from that state with the "
+        "template's rest metric, so the measured second compares solvers on the same motion, "
+        "not on how each settled the garment.",
         "",
         "## The converged reference",
         "",
