@@ -206,3 +206,34 @@ def test_body_scenes_start_from_one_settled_state(tmp_path, monkeypatch):
     body = trimesh.Trimesh(short.track.vertices[0], short.track.faces, process=False)
     _, gap, _ = trimesh.proximity.closest_point(body, a.vertices[a.pinned])
     assert gap.max() < 0.02, gap.max()
+
+
+def test_a_rejected_warm_up_does_not_stand_for_the_measured_run(monkeypatch):
+    """The study compiles each solver's kernels on a two-frame warm-up. The explicit solver's
+    warm-up at 2 substeps blew up on the 1 cm body scenes, and its rejection was recorded as
+    the 200- and 400-substep runs' own ("after 2 retries with up to 8 substeps"). The warm-up
+    now runs at the run's steps, and only the measured run can reject."""
+    from datagen.errors import RejectedSequence
+    from datagen.sim.scenes import grid_sheet
+    from datagen.sim.simulate import ColliderTrack
+    from datagen.study import run as study_run
+    from datagen.study.scenes import StudyScene
+    from datagen.types import SimResult
+
+    calls = []
+
+    def fake_simulate(garments, track, options):
+        calls.append((track.n_frames, options.substeps))
+        if len(calls) == 1:
+            raise RejectedSequence("simulate", "unstable at frame 1 (the warm-up)")
+        n = track.n_frames
+        return SimResult(["sheet"], {"sheet": np.zeros((n, 4, 3), np.float32)}, {}, {})
+
+    monkeypatch.setattr(study_run, "simulate", fake_simulate)
+    monkeypatch.setattr(study_run, "_WARM", set())
+    sheet = grid_sheet(1, 0.1, 1.0)
+    track = ColliderTrack(np.zeros((11, 3, 3)), np.array([[0, 1, 2]]), np.ones(1, bool))
+    scene = StudyScene("warm", "cotton", "", [sheet], track, 10, 10, 10)
+    run = study_run.run_ours(scene, "explicit", 200, 1)
+    assert calls == [(3, 200), (11, 200)]
+    assert run.positions.shape == (11, 4, 3) and run.simulated == pytest.approx(10 / 30)

@@ -113,8 +113,9 @@ def reading(rows: list[Row], presets: dict[str, tuple[int, int]]) -> list[str]:
         # scene's own mesh; other meshes have their own bullet.
         same = [r for r in mine if not _other_mesh(r)]
         front = [same[i] for i in pareto([(r.seconds_per_sim_second, r.rms_mm) for r in same])]
-        lines.append(f"- **Front** on the scene's mesh ({same[0].resolution}; no run is both "
-                     "faster and closer to the reference): "
+        mesh = f" ({same[0].resolution})" if same[0].resolution else ""
+        lines.append(f"- **Front** on the scene's mesh{mesh}, the runs that no other run beats "
+                     "in both time and error: "
                      + ", ".join(f"{_label(r)} ({_fmt(r.seconds_per_sim_second)} s, "
                                  f"{_fmt(r.rms_mm)} mm)" for r in front) + ".")
         order = convergence_order(mine)
@@ -243,6 +244,13 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
             lines.append(f"| {key} | {e['substeps']} | {e['seconds']:.0f} | "
                          f"{_fmt(e.get('rms_to_previous_mm', np.nan), 3)} | "
                          f"{_fmt(e.get('rms_1s_to_previous_mm', np.nan), 3)} |")
+    unconverged = [(key, ladder[-1]) for key, ladder in summary["ladders"].items()
+                   if ladder and ladder[-1].get("rms_to_previous_mm", 0.0) >= CONVERGED_MM]
+    for key, last in unconverged:
+        lines += ["", f"**{key}: not converged.** Its last halving, to {last['substeps']} "
+                  f"substeps, still changed the trajectory by {last['rms_to_previous_mm']:.2f} "
+                  f"mm RMS (the criterion is {CONVERGED_MM} mm): its errors below are against "
+                  "the finest rung it reached, and are uncertain by about that much."]
     lines += [
         "",
         "## Why the error is measured over the predictable horizon",
