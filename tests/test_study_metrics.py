@@ -130,7 +130,7 @@ def test_a_failing_finer_rung_ends_the_reference_ladder(monkeypatch):
 
     def fake_worker(scene, fabric, resolution, solver, substeps, iterations, fp64,
                     frames=None, perturb=0.0):
-        calls.append((substeps, perturb))
+        calls.append((substeps, perturb, 31))
         if substeps >= 160:
             raise RuntimeError("study worker failed: ...\nRejectedSequence: runaway velocity")
         shift = 0.0 if perturb == 0.0 else 2e-4 * np.arange(31)[:, None, None]
@@ -149,6 +149,28 @@ def test_a_failing_finer_rung_ends_the_reference_ladder(monkeypatch):
 
     def failing_first(*args, **kwargs):
         raise RuntimeError("study worker failed: boom")
+
+    # A finer rung's twin that leaves sooner shortens the horizon for every rung's change
+    def chaotic_when_fine(scene, fabric, resolution, solver, substeps, iterations, fp64,
+                          frames=None, perturb=0.0):
+        n = 31 if frames is None else frames + 1
+        calls.append((substeps, perturb, n))
+        # the twin leaves 1 mm RMS at frame 3 at 40 substeps, at frame 2 from 80 on
+        rate = 2e-4 if substeps == 40 else 3e-4
+        shift = 0.0 if perturb == 0.0 else rate * np.arange(31)[:n, None, None]
+        return {"positions": (base + 0.1 / substeps)[:n] + shift, "wall": np.float64(1.0)}
+
+    calls.clear()
+    monkeypatch.setattr(sweep, "run_worker", chaotic_when_fine)
+    ref, ladder, predictable = sweep.reference_ladder("sheet_sphere", "denim", "4k", plan, 31,
+                                                      lambda _: None)
+    assert [e["predictable_frames"] for e in ladder] == [3, 2, 2, 2, 2]
+    assert predictable == 2
+    # the twins run only as long as the horizon still reaches
+    assert [n for _, perturb, n in calls if perturb] == [31, 3, 2, 2, 2]
+    for e, coarse in zip(ladder[1:], (40, 80, 160, 320), strict=True):
+        assert e["rms_to_previous_mm"] == pytest.approx(
+            1000 * (0.1 / coarse - 0.1 / (2 * coarse)) * np.sqrt(3))
 
     monkeypatch.setattr(sweep, "run_worker", failing_first)
     with pytest.raises(RuntimeError, match="boom"):
