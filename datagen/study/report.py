@@ -241,9 +241,8 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
             if "failed" in e:
                 lines.append(f"| {key} | {e['substeps']} | failed: {e['failed']} | | | |")
                 continue
-            # Parts measured before every rung had a twin name only the first rung's.
-            own = e.get("predictable_frames", "")
-            lines.append(f"| {key} | {e['substeps']} | {e['seconds']:.0f} | {own} | "
+            lines.append(f"| {key} | {e['substeps']} | {e['seconds']:.0f} | "
+                         f"{e['predictable_frames']} | "
                          f"{_fmt(e.get('rms_to_previous_mm', np.nan), 3)} | "
                          f"{_fmt(e.get('rms_1s_to_previous_mm', np.nan), 3)} |")
     unconverged = [(key, ladder[-1]) for key, ladder in summary["ladders"].items()

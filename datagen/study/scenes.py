@@ -93,7 +93,13 @@ def _walking_body(action: str, frames: int, lead_in: int):
 HOLD_SECONDS = 0.5  # the quasi-static settle on the motion's first pose
 
 
-def settled_start(name: str, garments: list[Garment], body) -> np.ndarray:
+def _body_track(body, first: int, end: int, lead_in: int = 0) -> ColliderTrack:
+    """The body's frames first..end-1 as a collider track."""
+    return ColliderTrack(body.vertices[first:end], body.rest.faces, body.collider_face_mask,
+                         body.fps, lead_in)
+
+
+def settled_start(name: str, garments: list[Garment], body) -> dict[str, np.ndarray]:
     """The cloth at rest on the body in the motion's first pose: the dataset's timeline (settle
     on the rest pose, the lead-in) and then a quasi-static settle on the first pose, all with
     the implicit solver's `default` preset, cached on disk.
@@ -116,26 +122,24 @@ def settled_start(name: str, garments: list[Garment], body) -> np.ndarray:
         if os.environ.get("DATAGEN_SIM_FP64"):
             raise RuntimeError(f"the settled start of study scene {name} ({garments[0].fabric}) "
                                "is not cached: build the scene in a float32 process first")
-        faces, mask = body.rest.faces, body.collider_face_mask
         options = {"solver": "implicit", "quality": "default", "profile_every": 0,
                    "strain_refinements": 0}
         # The garments move with the body to where the lead-in starts and follow it ...
         rot, shift = body_start_transform(body)
         moved = [replace(g, vertices=g.vertices @ rot.T + shift, rest_vertices=g.rest)
                  for g in garments]
-        lead = simulate(moved, ColliderTrack(body.vertices[:lead_in + 1], faces, mask,
-                                             body.fps, lead_in), SimOptions(**options))
+        lead = simulate(moved, _body_track(body, 0, lead_in + 1, lead_in),
+                        SimOptions(**options))
         # ... then come to rest on the first pose (every settle frame starts at rest).
         placed = [replace(g, vertices=lead.vertices[g.name][0].astype(np.float64))
                   for g in moved]
-        held = simulate(placed, ColliderTrack(body.vertices[lead_in:lead_in + 1], faces, mask,
-                                              body.fps),
+        held = simulate(placed, _body_track(body, lead_in, lead_in + 1),
                         SimOptions(**options, settle_seconds=HOLD_SECONDS))
-        return {"start": np.concatenate([held.vertices[g.name][0] for g in garments])}
+        return {g.name: held.vertices[g.name][0] for g in garments}
 
     key = {"settled_start": name, "fabric": garments[0].fabric, "lead_in": lead_in,
            "hold": HOLD_SECONDS}
-    return cached(key, compute)["start"].astype(np.float64)
+    return {k: v.astype(np.float64) for k, v in cached(key, compute).items()}
 
 
 def garment_on_body(name: str, template: str, action: str, fabric: str,
@@ -154,13 +158,8 @@ def garment_on_body(name: str, template: str, action: str, fabric: str,
     outfit = OutfitSpec(garments=(spec,), tightness=(-0.5, -0.5))
     fitted = make_outfit(outfit, body.rest, default_body_model())
     start = settled_start(name, fitted, body)
-    placed, offset = [], 0
-    for g in fitted:
-        n = len(g.vertices)
-        placed.append(replace(g, vertices=start[offset:offset + n], rest_vertices=g.rest))
-        offset += n
-    track = ColliderTrack(body.vertices[lead_in:], body.rest.faces, body.collider_face_mask,
-                          body.fps)
+    placed = [replace(g, vertices=start[g.name], rest_vertices=g.rest) for g in fitted]
+    track = _body_track(body, lead_in, len(body.vertices))
     return StudyScene(name, fabric, "1cm", placed, track, frames, 30, frames)
 
 
