@@ -320,18 +320,19 @@ def test_frames_over_the_strain_bound_are_redone_with_more_substeps():
     assert 0 < hopeless.report["strain_refinements"] < n_over  # measured: 13
 
 
-def test_xpbd_holds_fabric_within_its_strain_limit():
-    """A sheet of a very soft fabric hanging from two corners: linear springs (the implicit
-    reference) let it stretch to 4.5 times its bound (measured 0.90); the xpbd solver holds every
-    fabric edge near STRAIN_LIMIT_FRACTION of max_strain (measured 0.19 against a limit of 0.18,
-    the rest of finite iterations) and so within the bound (0.2)."""
+def test_every_solver_holds_fabric_within_its_strain_limit():
+    """A sheet of a very soft fabric hanging from two corners. Its linear springs alone stretch
+    to 4.5 times the bound (0.90, measured before the force-based solvers limited strain); every
+    solver holds each fabric edge near STRAIN_LIMIT_FRACTION of max_strain (measured: implicit
+    0.197, explicit 0.180, xpbd 0.190 against a limit of 0.18) and so within the bound (0.2).
+    The lower bound shows that the sheet really hangs on the limit."""
     from datagen.sim.fabrics import FABRICS as BUILTIN
     from datagen.sim.model import STRAIN_LIMIT_FRACTION
 
     soft = replace(BUILTIN["cotton"], name="soft", stretch=4.0, compression=4.0, shear=4.0,
                    air_drag=2.0, max_strain=0.2)
     worst = {}
-    for solver in ("implicit", "xpbd"):
+    for solver in ("implicit", "explicit", "xpbd"):
         sheet = hanging_sheet("soft")
         options = SimOptions(solver=solver, quality="default", frames=60, settle_seconds=0.0,
                              effects="all", fabrics={"soft": soft}, strain_refinements=0)
@@ -342,8 +343,8 @@ def test_xpbd_holds_fabric_within_its_strain_limit():
         strain = (np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1)
                   / model.rest_length[model.fabric_springs] - 1.0)
         worst[solver] = float(strain.max())
-    assert worst["implicit"] > 2 * soft.max_strain, worst
-    assert STRAIN_LIMIT_FRACTION * soft.max_strain * 0.95 < worst["xpbd"] < soft.max_strain, worst
+    for value in worst.values():
+        assert STRAIN_LIMIT_FRACTION * soft.max_strain * 0.95 < value < soft.max_strain, worst
 
 
 def test_one_xpbd_iteration_stays_stable_at_first_contact():

@@ -204,7 +204,7 @@ def test_body_scenes_start_from_one_settled_state(tmp_path, monkeypatch):
     """Every run of a body scene starts from one cached settled state. A float64 study worker
     must find it cached (its own settle would start its runs elsewhere); the start keeps the
     template's rest metric, and the waist the skirt is pinned by is on the body. (The settle
-    runs at one implicit substep per frame here: the preset's 5 take minutes.)"""
+    runs at one implicit substep per frame here: the start's 20 take minutes.)"""
     from dataclasses import replace
 
     import trimesh

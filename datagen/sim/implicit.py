@@ -4,9 +4,9 @@ that the others are measured against (docs/accuracy-vs-time.md).
 
 Each substep minimises the incremental potential
     1/(2h^2) |x - x_n - h v_n|_M^2 + E(x) - f_ext . x + damping,
-with the springs' Rayleigh damping and the air drag linearised in (x - x_n) / h. Contact is
-resolved after the solve by the same projection the other solvers use, so all solvers share
-one collision model.
+with the springs' Rayleigh damping and the air drag linearised in (x - x_n) / h. The strain
+limit and then contact are resolved after the solve by the same projections the other solvers
+use, so all solvers share one fabric and one collision model.
 """
 
 from __future__ import annotations
@@ -102,6 +102,7 @@ class ImplicitSolver(ClothSolver):
         )  # fmt: skip
         self.costs["implicit_solve"] += time.perf_counter() - t
         self.launches["implicit_solve"] += 1
+        self._limit_strain(h)
         self._pins(s1)
         self._collide(collider, s0, s1, h)
         self._cloth_collisions(h, s0, s1)

@@ -268,6 +268,34 @@ def springs_gauss_seidel(
         spring_gs_one(e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, h, omega)
 
 
+@ti.kernel
+def limit_strain(x: V3, v: V3, w: F1, springs: I2, limit: F1, h: REAL, reverse: ti.i32) -> REAL:
+    """One Gauss-Seidel sweep of strain limiting for the force-based solvers (Provot 1995):
+    every spring longer than its limit is shortened to it, the ends moving by their inverse
+    masses, and the move enters the velocity as in a position-based step. Returns the largest
+    excess met, relative to the limit, so the caller can sweep until it is negligible."""
+    worst = 0.0
+    n_springs = springs.shape[0]
+    ti.loop_config(serialize=True)
+    for k in range(n_springs):
+        e = k
+        if reverse != 0:
+            e = n_springs - 1 - k
+        i = springs[e][0]
+        j = springs[e][1]
+        d = x[j] - x[i]
+        length = d.norm()
+        wsum = w[i] + w[j]
+        if length > limit[e] and wsum > 0.0:
+            worst = ti.max(worst, length / limit[e] - 1.0)
+            move = (length - limit[e]) / (wsum * length) * d
+            x[i] += w[i] * move
+            x[j] -= w[j] * move
+            v[i] += w[i] * move / h
+            v[j] -= w[j] * move / h
+    return worst
+
+
 @ti.func
 def bend_delta(
     x: V3, xp: V3, w: F1, bends: I4, kw: V4, comp: F1, beta: F1, lam_b: V3, b: ti.i32, h: REAL

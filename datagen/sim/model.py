@@ -45,7 +45,7 @@ DEGENERATE_FRACTION = 0.2
 # and validation judge by it.
 STRAIN_SHARE_MAX = 0.001
 # Woven and knitted fabrics stiffen sharply once their yarns straighten; the linear springs of
-# Blender's presets do not. The xpbd solver therefore holds a fabric spring inextensible past
+# Blender's presets do not. Every solver therefore holds a fabric spring inextensible past
 # this fraction of its fabric's max_strain (strain limiting, as in Provot 1995), below the QA
 # bound so that the bound measures how well the limit held.
 STRAIN_LIMIT_FRACTION = 0.9

@@ -8,7 +8,8 @@
 - `implicit`: backward Euler solved by Newton with preconditioned conjugate gradients
   (datagen.sim.implicit); the reference the others are measured against.
 
-All three share the external forces, pins and collision handling, so their differences are the
+All three share the external forces, the strain limit (xpbd within its sweeps, the others by
+a projection after each substep), pins and collision handling, so their differences are the
 time integration only.
 """
 
@@ -24,8 +25,11 @@ import taichi as ti
 from datagen.sim import kernels as K
 from datagen.sim.backend import init_taichi, serial
 from datagen.sim.effects import Effects
-from datagen.sim.model import SEAM, SHEAR, STRUCTURAL, ClothModel
+from datagen.sim.model import NO_LIMIT, SEAM, SHEAR, STRUCTURAL, ClothModel
 from datagen.sim.precision import NP_REAL, REAL, VEC3, VEC4
+
+STRAIN_LIMIT_SWEEPS = 20  # force-based solvers: most projection sweeps per substep
+STRAIN_LIMIT_TOLERANCE = 1e-4  # ... and the excess (relative to the limit) that ends them
 
 
 @dataclass(frozen=True)
@@ -136,8 +140,39 @@ class ClothSolver:
         self.costs: dict[str, float] = defaultdict(float)
         self.launches: dict[str, int] = defaultdict(int)
         self._sweep = 0
+        self._init_strain_limit()
         self._init_self_collision()
         self._init_layers()
+
+    # -- strain limiting (force-based solvers) -----------------------------------------------
+    def _init_strain_limit(self) -> None:
+        """The springs that have a limit length (fabric stretch and shear), as one set: the
+        force-based solvers project them after each substep so that every solver simulates the
+        same model as xpbd, which limits inside its constraint sweeps."""
+        springs, limits = [], []
+        for s in self.sets.values():
+            lim = s.limit.to_numpy()[: s.count]
+            keep = lim < NO_LIMIT / 2
+            springs.append(s.springs.to_numpy()[: s.count][keep])
+            limits.append(lim[keep])
+        sp = np.concatenate(springs) if springs else np.zeros((0, 2), np.int32)
+        self.n_limited = len(sp)
+        self.limited = _nd(ti.math.ivec2, sp.astype(np.int32))
+        self.limited_length = _nd(REAL, np.concatenate(limits) if limits else np.zeros(0))
+
+    def _limit_strain(self, h: float) -> None:
+        """Gauss-Seidel sweeps (alternating direction) until no spring is more than
+        STRAIN_LIMIT_TOLERANCE past its limit, at most STRAIN_LIMIT_SWEEPS."""
+        if not self.n_limited:
+            return
+        t = time.perf_counter()
+        for sweep in range(STRAIN_LIMIT_SWEEPS):
+            worst = K.limit_strain(self.x, self.v, self.w, self.limited, self.limited_length, h,
+                                   sweep % 2)
+            self.launches["strain_limit"] += 1
+            if worst < STRAIN_LIMIT_TOLERANCE:
+                break
+        self.costs["strain_limit"] += time.perf_counter() - t
 
     # -- cloth-cloth collision ---------------------------------------------------------------
     def _init_self_collision(self) -> None:
@@ -680,6 +715,7 @@ class ExplicitSolver(ClothSolver):
             e.gravity,
             e.air_drag or e.wind,
         )
+        self._limit_strain(h)
         self._pins(s1)
         self._collide(collider, s0, s1, h)
         self._cloth_collisions(h, s0, s1)
