@@ -144,7 +144,8 @@ def settled_start(name: str, garments: list[Garment], body) -> dict[str, np.ndar
         return {g.name: held.vertices[g.name][0] for g in garments}
 
     key = {"settled_start": name, "fabric": garments[0].fabric, "lead_in": lead_in,
-           "hold": HOLD_SECONDS, "substeps": START_SUBSTEPS, "strain_limit": "all solvers"}
+           "hold": HOLD_SECONDS, "substeps": START_SUBSTEPS, "strain_limit": "all solvers",
+           "contact_walk": "ends on the triangle it evaluated"}
     return {k: v.astype(np.float64) for k, v in cached(key, compute).items()}
 
 
