@@ -219,6 +219,15 @@ def spring_delta(
 
 
 @ti.func
+def sweep_order(k: ti.i32, n: ti.i32, reverse: ti.i32) -> ti.i32:
+    """The k-th element of a Gauss-Seidel sweep over n, backwards when `reverse`."""
+    e = k
+    if reverse != 0:
+        e = n - 1 - k
+    return e
+
+
+@ti.func
 def spring_gs_one(
     e: ti.i32,
     x: V3,
@@ -262,9 +271,7 @@ def springs_gauss_seidel(
     n_springs = springs.shape[0]
     ti.loop_config(serialize=True)
     for k in range(n_springs):
-        e = k
-        if reverse != 0:
-            e = n_springs - 1 - k
+        e = sweep_order(k, n_springs, reverse)
         spring_gs_one(e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, h, omega)
 
 
@@ -278,9 +285,7 @@ def limit_strain(x: V3, v: V3, w: F1, springs: I2, limit: F1, h: REAL, reverse: 
     n_springs = springs.shape[0]
     ti.loop_config(serialize=True)
     for k in range(n_springs):
-        e = k
-        if reverse != 0:
-            e = n_springs - 1 - k
+        e = sweep_order(k, n_springs, reverse)
         i = springs[e][0]
         j = springs[e][1]
         d = x[j] - x[i]
