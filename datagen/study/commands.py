@@ -22,7 +22,8 @@ def bench() -> None:
               help="Run Blender's series (skipped with a message when Blender is absent).")
 @click.option("--doc", type=click.Path(dir_okay=False), default=None,
               help="Where the report goes (default: docs/accuracy-vs-time.md in a checkout, "
-                   "else OUT/accuracy-vs-time.md).")
+                   "else OUT/accuracy-vs-time.md; a --quick run writes to OUT so that it "
+                   "never replaces the full study's page).")
 @click.option("--report-only", is_flag=True,
               help="Run nothing: write the CSV, plot and report from the parts already "
                    "finished under OUT/parts (a stopped full run), naming the missing ones.")
@@ -35,8 +36,9 @@ def accuracy(quick: bool, out: str, blender: bool, doc: str | None, report_only:
     Each finished scene/fabric is kept under OUT/parts and reused by the next run."""
     from datagen.study.sweep import main_cli
 
-    if doc is None and REPO_DOC.parent.is_dir():
-        doc = str(REPO_DOC)
+    if doc is None:
+        doc = str(REPO_DOC) if REPO_DOC.parent.is_dir() and not quick else str(
+            Path(out) / "accuracy-vs-time.md")
     command = "datagen bench accuracy" + (" --quick" if quick else "") + f" --out {out}"
     summary = main_cli(out, quick, blender, doc, command, measure=not report_only,
                        only=set(parts) or None)
