@@ -18,6 +18,8 @@ I2 = ti.types.ndarray(dtype=ti.math.ivec2, ndim=1)
 I3 = ti.types.ndarray(dtype=ti.math.ivec3, ndim=1)
 I4 = ti.types.ndarray(dtype=ti.math.ivec4, ndim=1)
 
+WALK_STEPS = 8  # most triangles a cloth vertex's walk to its closest body triangle visits
+
 
 # -- geometry ----------------------------------------------------------------------------------
 @ti.func
@@ -537,7 +539,7 @@ def collide_one(
         b = vec3(0.0)
         c = vec3(0.0)
         inside = False
-        for step in range(8):
+        for step in range(WALK_STEPS):
             f = faces[t]
             a = lerp3(b0[f[0]], b1[f[0]], s1)
             b = lerp3(b0[f[1]], b1[f[1]], s1)
@@ -558,7 +560,7 @@ def collide_one(
             # last one left a, b, c one triangle behind t, and the contact then took its
             # normal and the body's velocity (q at the end minus the other triangle's point at
             # the start: 110 m/s where the body moved 1.4 m/s) from two different triangles.
-            if nxt < 0 or step == 7:
+            if nxt < 0 or step == WALK_STEPS - 1:
                 break
             t = nxt
         tri[i] = t

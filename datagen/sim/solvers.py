@@ -25,7 +25,7 @@ import taichi as ti
 from datagen.sim import kernels as K
 from datagen.sim.backend import init_taichi, serial
 from datagen.sim.effects import Effects
-from datagen.sim.model import NO_LIMIT, SEAM, SHEAR, STRUCTURAL, ClothModel
+from datagen.sim.model import SEAM, SHEAR, STRUCTURAL, ClothModel
 from datagen.sim.precision import NP_REAL, REAL, VEC3, VEC4
 
 STRAIN_LIMIT_SWEEPS = 20  # force-based solvers: most projection sweeps per substep
@@ -149,16 +149,12 @@ class ClothSolver:
         """The springs that have a limit length (fabric stretch and shear), as one set: the
         force-based solvers project them after each substep so that every solver simulates the
         same model as xpbd, which limits inside its constraint sweeps."""
-        springs, limits = [], []
-        for s in self.sets.values():
-            lim = s.limit.to_numpy()[: s.count]
-            keep = lim < NO_LIMIT / 2
-            springs.append(s.springs.to_numpy()[: s.count][keep])
-            limits.append(lim[keep])
-        sp = np.concatenate(springs) if springs else np.zeros((0, 2), np.int32)
-        self.n_limited = len(sp)
-        self.limited = _nd(ti.math.ivec2, sp.astype(np.int32))
-        self.limited_length = _nd(REAL, np.concatenate(limits) if limits else np.zeros(0))
+        active = [s.index for s in self.sets.values()]
+        index = np.concatenate(active) if active else np.zeros(0, np.int64)
+        index = index[self.model.fabric_springs[index]]  # seams and elastics have no limit
+        self.n_limited = len(index)
+        self.limited = _nd(ti.math.ivec2, self.model.springs[index].astype(np.int32))
+        self.limited_length = _nd(REAL, self.model.limit_length[index].astype(NP_REAL))
 
     def _limit_strain(self, h: float) -> None:
         """Gauss-Seidel sweeps (alternating direction) until no spring is more than

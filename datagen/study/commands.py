@@ -36,9 +36,8 @@ def accuracy(quick: bool, out: str, blender: bool, doc: str | None, report_only:
     Each finished scene/fabric is kept under OUT/parts and reused by the next run."""
     from datagen.study.sweep import main_cli
 
-    if doc is None:
-        doc = str(REPO_DOC) if REPO_DOC.parent.is_dir() and not quick else str(
-            Path(out) / "accuracy-vs-time.md")
+    if doc is None and not quick and REPO_DOC.parent.is_dir():
+        doc = str(REPO_DOC)  # otherwise main_cli writes OUT/accuracy-vs-time.md
     command = "datagen bench accuracy" + (" --quick" if quick else "") + f" --out {out}"
     summary = main_cli(out, quick, blender, doc, command, measure=not report_only,
                        only=set(parts) or None)

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from datagen.study.scenes import START_SUBSTEPS
 from datagen.study.sweep import CHAOS_MM, CONVERGED_MM, TWIN_METRES, Row, pareto
 
 
@@ -219,11 +220,11 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
         "each). Both start when the body's lead-in from the rest pose ends, from one settled "
         "state: the garment settled on the rest pose, carried through the lead-in and settled "
         "again, at rest, on the motion's first pose, all by the implicit solver at the "
-        "ladder's first rung, 20 substeps (`datagen.study.scenes.settled_start`): an "
-        "equilibrium of the reference's own model, so the reference does not start with a snap "
-        "that each step size damps differently. At the default preset's 5 substeps the contact "
-        "projection left the t-shirt's armpits and neck 2-6 times their rest length; at 20 its "
-        "start has p99.9 strain 0.20 and at most 0.39 (cotton's bound: 0.25). Every solver "
+        f"ladder's first rung, {START_SUBSTEPS} substeps "
+        "(`datagen.study.scenes.settled_start`): an equilibrium of the reference's own model, "
+        "so the reference does not start with a snap that each step size damps differently. "
+        "At the default preset's 5 substeps the contact projection stretches the t-shirt's "
+        "armpits and neck past cotton's bound (0.25) at the p99.9 edge. Every solver "
         "limits fabric strain at 90 % of the bound (docs/simulator.md), so all of them, the "
         "reference included, simulate one model. Every run, Blender's included, starts from "
         "that state with the "
