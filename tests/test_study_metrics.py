@@ -259,3 +259,22 @@ def test_a_rejected_warm_up_does_not_stand_for_the_measured_run(monkeypatch):
     run = study_run.run_ours(scene, "explicit", 200, 1)
     assert calls == [(3, 200), (11, 200)]
     assert run.positions.shape == (11, 4, 3) and run.simulated == pytest.approx(10 / 30)
+
+
+def test_equal_error_speed_pairs_each_blender_run_with_our_cheapest_as_close():
+    """Each Blender run is matched with the cheapest of our xpbd runs (on the scene's mesh) whose
+    error is no larger; the ratio is Blender's time over ours; an unmatched run says so."""
+    from datagen.study.report import equal_error_speed
+    from datagen.study.sweep import Row
+
+    def row(series, sub, it, seconds, mm, resolution="4k", note=""):
+        return Row("sheet_sphere", "cotton", resolution, series, sub, it, 4225, seconds,
+                   mm, mm, mm, mm, 0.1, 0.0, "ok", note)
+
+    rows = [row("xpbd", 10, 2, 0.5, 9.0), row("xpbd", 20, 4, 1.0, 4.0),
+            row("xpbd", 40, 8, 3.0, 2.0), row("xpbd", 5, 1, 0.1, 1.0, "coarse",
+                                              "measured at the reference mesh's vertices"),
+            row("blender", 5, 1, 10.0, 5.0), row("blender", 20, 1, 40.0, 1.5)]
+    text = "\n".join(equal_error_speed(rows))
+    assert "| sheet_sphere/cotton | q5 | 5.00 | 10.00 | xpbd 20x4 | 4.00 | 1.00 | 10.0x |" in text
+    assert "| sheet_sphere/cotton | q20 | 1.50 | 40.00 | none of ours is this close |" in text
