@@ -390,3 +390,49 @@ def test_inexact_newton_reaches_the_same_steps_with_fewer_cg_iterations():
     assert np.linalg.norm(exact - inexact, axis=1).max() < 2e-5
     assert cg_inexact < 0.75 * cg_exact, (cg_inexact, cg_exact)
     assert unconverged == 0
+
+
+@pytest.mark.parametrize("start_z, end_z, friction, expected", [
+    # A new contact: 2 mm into the 4 mm band from outside. The push (2 mm) bounds friction: at
+    # 0.3 it takes 0.6 mm off the 1 mm slide, at 0.6 it holds the vertex (static friction).
+    (0.006, 0.002, 0.3, (0.0004, 0.004)),
+    (0.006, 0.002, 0.6, (0.0, 0.004)),
+    # A vertex that started 2 mm inside and did not move inwards: the recovery moves it out by
+    # recover_speed * h (0.5 mm) and that is no impulse, so the slide is untouched. (Counted
+    # as one, it took 0.3 mm off every substep: per second, friction grew with the substeps.)
+    (-0.002, -0.002, 0.6, (0.001, -0.0015)),
+    # The same vertex pressed 1 mm further in: only that 1 mm bounds friction (0.3 mm).
+    (-0.002, -0.003, 0.3, (0.0007, -0.0015)),
+])
+def test_contact_friction_is_bounded_by_the_push_that_undoes_inward_motion(
+        start_z, end_z, friction, expected):
+    """One cloth vertex sliding 1 mm along a still plane (z = 0) in one substep, through the
+    body-collision kernel: Coulomb's bound on the tangential correction is the friction
+    coefficient times the normal correction that undoes this substep's motion into the body."""
+    import taichi as ti
+
+    from datagen.sim import kernels as K
+    from datagen.sim.precision import NP_REAL, REAL, VEC3
+
+    plane = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    collider = BodyCollider(faces, np.ones(2, bool), 4)
+    collider.set_frames(plane, plane)
+
+    def nd(dtype, values):
+        arr = ti.ndarray(dtype, len(values))
+        arr.from_numpy(np.asarray(values, NP_REAL if dtype is not ti.i32 else np.int32))
+        return arr
+
+    h, recover_speed = 1.0 / 600.0, 0.3
+    x = nd(VEC3, [[0.001, 0.1, end_z]])
+    xp = nd(VEC3, [[0.0, 0.1, start_z]])
+    contact_n, contact_v = nd(VEC3, [[0.0, 0.0, 0.0]]), nd(VEC3, [[0.0, 0.0, 0.0]])
+    K.collide_body(x, xp, nd(REAL, [1.0]), nd(ti.i32, [0]), collider.faces, collider.fadj,
+                   collider.b0, collider.b1, collider.n0, collider.n1, 0.0, 1.0,
+                   nd(REAL, [0.004]), nd(REAL, [friction]), recover_speed * h, 0.05,
+                   contact_n, contact_v, h, True)
+    moved = x.to_numpy()[0]
+    assert moved[0] == pytest.approx(expected[0], abs=1e-7)
+    assert moved[2] == pytest.approx(expected[1], abs=1e-7)
+    assert contact_n.to_numpy()[0] == pytest.approx([0.0, 0.0, 1.0])
