@@ -651,7 +651,7 @@ def _collide_tracked(
                 # is the same distance per substep at any step, so counted here it made the
                 # friction per second grow with the substeps (the references' skirt differed
                 # more between 40 and 80 substeps than between 20 and 40).
-                inward = ti.max(0.0, ti.min(push, ti.min(sd_prev, target) - sd))
+                inward = ti.max(0.0, ti.min(sd_prev, target) - sd)  # <= push: target - sd
                 limit = friction[i] * inward
                 if lt > 1e-12:
                     p -= tang * ti.min(1.0, limit / lt)
