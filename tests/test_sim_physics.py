@@ -436,3 +436,135 @@ def test_contact_friction_is_bounded_by_the_push_that_undoes_inward_motion(
     assert moved[0] == pytest.approx(expected[0], abs=1e-7)
     assert moved[2] == pytest.approx(expected[1], abs=1e-7)
     assert contact_n.to_numpy()[0] == pytest.approx([0.0, 0.0, 1.0])
+
+
+def _points_to_triangles(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """Distance from each point to the nearest of the triangles (T, 3, 3), by trimesh."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(corners.reshape(-1, 3), np.arange(corners.size // 3).reshape(-1, 3),
+                           process=False)
+    return trimesh.proximity.closest_point(mesh, points)[1]
+
+
+def _unsearched_near(v0, v1, faces, p0, p1, n_sub: int = 20) -> tuple[int, int]:
+    """Cloth vertices moving p0 -> p1 over a frame while the collider moves v0 -> v1: the
+    solver's closest-triangle search at the frame's end (from the start positions, as
+    ClothSolver.search does), then each substep's search of untracked vertices, every vertex
+    untracked each time. Asserts that a vertex that was not searched is farther than half a
+    grid cell from every triangle; returns (checks skipped by a guard, triangles found)."""
+    import taichi as ti
+
+    from datagen.sim import kernels as K
+    from datagen.sim.precision import NP_REAL, REAL, VEC3
+    from datagen.sim.solvers import fresh_guards
+
+    n = len(p0)
+    collider = BodyCollider(faces, np.ones(len(faces), bool), len(v0))
+    collider.set_frames(v0, v1)
+    x = ti.ndarray(VEC3, n)
+    w = ti.ndarray(REAL, n)
+    w.fill(1.0)
+    tri = ti.ndarray(ti.i32, n)
+    guard = ti.ndarray(K.GUARD, n)
+    guard.from_numpy(fresh_guards(n))
+    x.from_numpy(p0.astype(NP_REAL))
+    collider.nearest(x, w, tri, 1.0, False, guard, collider.max_speed)
+    skipped = found = 0
+    for k in range(1, n_sub + 1):
+        s = k / n_sub
+        x.from_numpy((p0 + s * (p1 - p0)).astype(NP_REAL))
+        tri.fill(-1)  # every vertex untracked: each check either searches or trusts its guard
+        before = guard.to_numpy()
+        collider.nearest(x, w, tri, s, True, guard, s * collider.max_speed)
+        searched = np.any(guard.to_numpy() != before, axis=1) | (tri.to_numpy() >= 0)
+        near = _points_to_triangles(p0 + s * (p1 - p0), (v0 + s * (v1 - v0))[faces])
+        hidden = ~searched & (near < 0.5 * collider.cell)
+        assert not hidden.any(), f"substep {k}: {hidden.sum()} vertices near a triangle skipped"
+        skipped += int((~searched).sum())
+        found += int((tri.to_numpy() >= 0).sum())
+    return skipped, found
+
+
+def _plate(n: int, size: float) -> tuple[np.ndarray, np.ndarray]:
+    """A square plate in the z = 0 plane, centred on the origin: (vertices, faces)."""
+    sheet = grid_sheet(n, size, 0.0)
+    return sheet.vertices, sheet.faces
+
+
+def test_search_guards_never_hide_a_triangle_that_came_near():
+    """Untracked cloth vertices skip the closest-triangle search while a guard proves nothing
+    can be near. Small triangles, still, drifting with the body or flying at up to 9 m/s, pass
+    cloth vertices that keep still, drift or flutter; at every substep, a vertex that is not
+    searched must be farther than half a grid cell from every triangle."""
+    rng = np.random.default_rng(7)
+    n_tri, n_pts = 40, 400
+    base = rng.uniform(-0.06, 0.06, (n_tri, 1, 3)) + rng.normal(0.0, 0.006, (n_tri, 3, 3))
+    drift = np.array([0.08, 0.0, 0.0])  # the body's run, 2.4 m/s
+    # A third of the triangles and of the vertices keep still, the rest drift with the body;
+    # on top of that some triangles fly (up to 0.3 m per frame) and some vertices flutter.
+    moving = (rng.random((n_tri, 1, 1)) < 0.67) * drift
+    fast = rng.random((n_tri, 1, 1)) < 0.15
+    v0 = base.reshape(-1, 3)
+    v1 = (base + moving + rng.uniform(-0.3, 0.3, (n_tri, 1, 3)) * fast).reshape(-1, 3)
+    p0 = rng.uniform(-0.09, 0.09, (n_pts, 3))
+    p1 = (p0 + (rng.random((n_pts, 1)) < 0.67) * drift
+          + rng.uniform(-0.1, 0.1, (n_pts, 3)) * (rng.random((n_pts, 1)) < 0.3))
+    skipped, found = _unsearched_near(v0, v1, np.arange(3 * n_tri).reshape(-1, 3), p0, p1)
+    # The test must exercise both paths: guards that held and triangles that came near.
+    assert skipped > 100 and found > 0
+
+
+@pytest.mark.parametrize("case", ["runs into a still wall", "a still vertex is caught up"])
+def test_search_guards_follow_the_body_but_not_past_what_they_searched(case):
+    """The guards' bound is relative to the body's mean motion, for the searched cells only: a
+    vertex drifting with the body may not run unsearched into a still wall outside those
+    cells, and a vertex that keeps still may not be overtaken by the drifting body."""
+    plate, plate_faces = _plate(10, 0.1)  # the body: 121 vertices drifting 8 cm per frame
+    drift = np.array([0.08, 0.0, 0.0])
+    wall = np.array([[0.075, -0.03, -0.03], [0.075, 0.03, -0.03], [0.075, 0.03, 0.03],
+                     [0.075, -0.03, 0.03]])
+    v0 = np.concatenate([plate, wall])
+    v1 = np.concatenate([plate + drift, wall])
+    faces = np.concatenate([plate_faces, np.array([[0, 1, 2], [0, 2, 3]]) + len(plate)])
+    if case == "runs into a still wall":
+        p0 = np.array([[0.0, 0.0, 0.03]])
+        p1 = p0 + drift
+    else:
+        p0 = np.array([[0.09, 0.0, 0.008]])
+        p1 = p0
+        v0, v1, faces = plate, plate + drift, plate_faces
+    skipped, found = _unsearched_near(v0, v1, faces, p0, p1)
+    assert skipped > 0 and found > 0
+
+
+def test_cloth_moving_with_the_body_is_not_searched_again_within_the_frame():
+    """A loose vertex 3 cm from a body walking 4 cm per frame, moving with it: the odometer
+    alone would have it searched again at every substep; the grid's guard (the relative motion
+    of the cells' triangles) keeps it from being searched for the rest of the frame."""
+    import taichi as ti
+
+    from datagen.sim import kernels as K
+    from datagen.sim.precision import NP_REAL, REAL, VEC3
+    from datagen.sim.solvers import fresh_guards
+
+    plane = np.array([[-0.2, -0.2, 0], [0.2, -0.2, 0], [0.2, 0.2, 0], [-0.2, 0.2, 0]], float)
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    walk = np.array([0.04, 0.0, 0.0])
+    collider = BodyCollider(faces, np.ones(2, bool), 4)
+    collider.set_frames(plane, plane + walk)
+    x = ti.ndarray(VEC3, 1)
+    w = ti.ndarray(REAL, 1)
+    w.fill(1.0)
+    tri = ti.ndarray(ti.i32, 1)
+    tri.fill(-1)
+    guard = ti.ndarray(K.GUARD, 1)
+    guard.from_numpy(fresh_guards(1))
+    searched_at = []
+    for k in range(6):
+        s = k / 20
+        x.from_numpy((np.array([[0.0, 0.0, 0.03]]) + s * walk).astype(NP_REAL))
+        collider.nearest(x, w, tri, s, True, guard, s * collider.max_speed)
+        searched_at.append(float(guard.to_numpy()[0, K.G_TIME]))
+    assert tri.to_numpy()[0] == -1
+    assert searched_at == [0.0] * 6  # searched once, at the frame's start

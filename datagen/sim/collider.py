@@ -4,12 +4,14 @@ closest-triangle search."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import taichi as ti
 
 from datagen.sim import kernels as K
 from datagen.sim.backend import init_taichi
-from datagen.sim.precision import NP_REAL, REAL, VEC3, VEC4
+from datagen.sim.precision import NP_REAL, REAL, VEC3
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -43,6 +45,11 @@ def face_adjacency(faces: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return adj
 
 
+# Grid numbers, unique across the colliders of a process (a retry solver is handed the guards
+# that another solver's collider proved), and exact as float32 (2**24 grids before they repeat).
+_GRID_TAGS = (1 + k % (2**24 - 1) for k in itertools.count())
+
+
 class BodyCollider:
     """Holds the body's frames on the device; one instance per scene."""
 
@@ -68,10 +75,14 @@ class BodyCollider:
         self.bs0 = ti.ndarray(VEC3, n_vertices)
         self.bs1 = ti.ndarray(VEC3, n_vertices)
         self.ns1 = ti.ndarray(VEC3, n_vertices)
+        self.travel = ti.ndarray(REAL, n_vertices)  # each vertex's travel over the frame
+        self.travel.fill(0.0)
+        self.shift_np = np.zeros(3)
         self._n_cells_alloc = 0
         self.counts = self.starts = self.items = None
         self._items_alloc = 0
         self._prev = None
+        self.grid_tag = 0  # this collider's grid's number (kernels.nearest_one's frame guards)
 
     def set_frames(self, v0: np.ndarray, v1: np.ndarray, nrm0=None, nrm1=None) -> None:
         """Body positions at the start and end of the coming frame (interpolated in between).
@@ -93,6 +104,12 @@ class BodyCollider:
             self.b0.from_numpy(v0)
             self.n0.from_numpy(vertex_normals(v0, self.faces_np) if nrm0 is None else nrm0)
         self.v0_np, self.v1_np = v0, v1
+        motion = (v1 - v0).astype(np.float64)
+        self.travel_np = np.linalg.norm(motion, axis=1)
+        # The body's mean motion over the frame, and each vertex's distance from it: cloth
+        # near the torso moves with it (kernels.nearest_one's guards).
+        self.shift_np = motion.mean(axis=0)
+        self.travel.from_numpy(np.linalg.norm(motion - self.shift_np, axis=1).astype(NP_REAL))
         self._at_rest = bool(np.array_equal(v0, v1))
         if np.array_equal(v0, v1):
             self.b1.copy_from(self.b0)
@@ -103,6 +120,7 @@ class BodyCollider:
         self._build_grid()
 
     def _build_grid(self) -> None:
+        self.grid_tag = next(_GRID_TAGS)
         used = self.faces_np[self.mask_np]
         pts = np.concatenate([self.v0_np[used.ravel()], self.v1_np[used.ravel()]])
         lo = pts.min(axis=0) - self.cell
@@ -186,18 +204,19 @@ class BodyCollider:
             guard = self._scratch_guard(x.shape[0])
         K.grid_nearest(x, w, self.b0, self.b1, self.faces, self.origin, self.inv_cell,
                        self.dims, self.starts, self.items, float(s), float(self.cell), tri,
-                       int(only_untracked), guard, float(odo))
+                       int(only_untracked), guard, float(odo), float(self.grid_tag),
+                       VEC3(*self.shift_np), self.travel)
 
     def _scratch_guard(self, n: int):
         from datagen.sim.solvers import fresh_guards
 
         if getattr(self, "_guard_n", None) != n:
             self._guard_n = n
-            self._guard = ti.ndarray(VEC4, n)
+            self._guard = ti.ndarray(K.GUARD, n)
         self._guard.from_numpy(fresh_guards(n))
         return self._guard
 
     @property
     def max_speed(self) -> float:
         """Fastest body vertex in the current frame, in metres per frame."""
-        return float(np.linalg.norm(self.v1_np - self.v0_np, axis=1).max())
+        return float(self.travel_np.max())

@@ -12,6 +12,11 @@ from datagen.sim.precision import REAL, VEC3, VEC4
 vec3 = VEC3
 V3 = ti.types.ndarray(dtype=vec3, ndim=1)
 V4 = ti.types.ndarray(dtype=VEC4, ndim=1)
+# A search guard per cloth vertex (see nearest_one): where the vertex was searched, the odometer
+# then, the grid's number, the frame fraction, and the fastest corner among the cells' triangles.
+GUARD = ti.types.vector(8, REAL)
+G_ODO, G_TAG, G_TIME, G_SPEED = 3, 4, 5, 6
+V8 = ti.types.ndarray(dtype=GUARD, ndim=1)
 F1 = ti.types.ndarray(dtype=REAL, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 I2 = ti.types.ndarray(dtype=ti.math.ivec2, ndim=1)
@@ -808,26 +813,49 @@ def nearest_one(
     max_dist: REAL,
     tri: I1,
     only_untracked: ti.i32,
-    guard: V4,
+    guard: V8,
     odo: REAL,
+    grid_tag: REAL,
+    s_frame: REAL,
+    shift: vec3,
+    travel: F1,
 ):
     """The closest collider triangle to cloth vertex i within `max_dist` (else -1), at body
     positions interpolated at fraction s, searching the 27 grid cells around the vertex.
     With `only_untracked`, a vertex that already tracks a triangle keeps it, and one whose last
     search found nothing is not searched again while it provably cannot be near: that search
-    showed no triangle within `max_dist`, and since then the vertex has moved |x - guard.xyz|
-    and the body at most |odo - guard.w| (`odo`: how far the body's fastest vertex has
-    travelled)."""
+    showed no triangle within `max_dist` of guard.xyz, and since then
+    - the vertex has moved |x - guard.xyz| and the triangles at most |odo - guard.odo|, `odo`
+      being how far the body's fastest vertex has travelled; or,
+    - the grid is still the one searched (guard.tag == grid_tag; grids are numbered and the
+      numbers never repeat). It holds each triangle's box swept over the whole frame, so while
+      the vertex stays within half of `max_dist` of guard.xyz only the searched cells'
+      triangles can come near, and they can close in by no more than the vertex's and their
+      own motion relative to the body's mean motion over the frame (`shift`): the vertex's
+      |x - guard.xyz - shift * (s_frame - guard.time)|, theirs the fastest corner's `travel`
+      (each collider vertex's distance from the mean motion over the frame) times the frame
+      fraction since. `s_frame` is the fraction of the frame the body is at.
+    The odometer counts the fastest limb, and on a walking body it had every loose vertex
+    searched again at almost every substep: half of an xpbd frame. Cloth near the torso moves
+    with it, so the local, relative bound holds for several substeps.
+    """
     clear = False
     if w[i] > 0.0 and only_untracked != 0 and tri[i] < 0:
         g = guard[i]
-        moved = (x[i] - vec3(g[0], g[1], g[2])).norm() + ti.abs(odo - g[3])
-        clear = moved < 0.5 * max_dist
+        drift = x[i] - vec3(g[0], g[1], g[2])
+        moved = drift.norm()
+        budget = 0.5 * max_dist
+        clear = moved + ti.abs(odo - g[G_ODO]) < budget
+        if g[G_TAG] == grid_tag and moved < budget:
+            since = s_frame - g[G_TIME]
+            closing = (drift - shift * since).norm() + g[G_SPEED] * ti.abs(since)
+            clear = clear or closing < budget
     if w[i] > 0.0 and (only_untracked == 0 or tri[i] < 0) and not clear:
         p = x[i]
         cell = ti.cast(ti.floor((p - origin) * inv_cell), ti.i32)
         best = max_dist * max_dist
         best_t = -1
+        fastest = ti.cast(0.0, REAL)
         for nb in range(27):  # a dynamic loop: unrolling 27 copies makes compiles slow
             c = cell + ti.math.ivec3(nb // 9 - 1, (nb // 3) % 3 - 1, nb % 3 - 1)
             if (
@@ -842,6 +870,7 @@ def nearest_one(
                 for q in range(starts[cid], starts[cid + 1]):
                     t = items[q]
                     f = faces[t]
+                    fastest = ti.max(fastest, travel[f[0]], travel[f[1]], travel[f[2]])
                     r = closest_on_triangle(
                         p,
                         lerp3(b0[f[0]], b1[f[0]], s),
@@ -853,7 +882,7 @@ def nearest_one(
                         best_t = t
         tri[i] = best_t
         if best_t < 0:
-            guard[i] = VEC4(p[0], p[1], p[2], odo)
+            guard[i] = GUARD(p[0], p[1], p[2], odo, grid_tag, s_frame, fastest, 0.0)
 
 
 @ti.kernel
@@ -872,8 +901,11 @@ def grid_nearest(
     max_dist: REAL,
     tri: I1,
     only_untracked: ti.i32,
-    guard: V4,
+    guard: V8,
     odo: REAL,
+    grid_tag: REAL,
+    shift: vec3,
+    travel: F1,
 ):
     for i in x:
         nearest_one(
@@ -894,6 +926,10 @@ def grid_nearest(
             only_untracked,
             guard,
             odo,
+            grid_tag,
+            s,
+            shift,
+            travel,
         )
 
 
@@ -903,8 +939,9 @@ def grid_nearest(
 P_H, P_OMEGA, P_RECOVER, P_ODO, P_CELL, P_INV_CELL = range(6)
 P_GRAVITY, P_WIND, P_ORIGIN, P_L_ORIGIN = 6, 9, 12, 15  # 3 values each
 P_S_INV_CELL, P_S_RADIUS, P_S_MIN_REST, P_L_INV_CELL, P_L_CELL, P_TRAVEL = range(18, 24)
-P_L_ODO, P_L_TRAVEL = 24, 25
-P_SIZE = 26
+P_L_ODO, P_L_TRAVEL, P_TAG, P_L_TAG = 24, 25, 26, 27
+P_SHIFT, P_L_SHIFT = 28, 31  # 3 values each
+P_SIZE = 34
 Q_N_SUB, Q_N_ITER, Q_SWEEP0, Q_N_SETS, Q_N_BENDS, Q_N_PINS, Q_S_MASK = range(7)
 Q_DIMS, Q_L_DIMS = 7, 10  # 3 values each
 Q_SIZE = 13
@@ -949,7 +986,8 @@ def xpbd_frame(
     contact_v: V3,
     starts: I1,
     items: I1,
-    guard: V4,
+    guard: V8,
+    travel: F1,
     s_owner: I1,
     s_rest: V3,
     s_counts: I1,
@@ -957,7 +995,8 @@ def xpbd_frame(
     s_items: I1,
     l_w: F1,
     l_tri: I1,
-    l_guard: V4,
+    l_guard: V8,
+    l_travel_v: F1,
     l_faces: I3,
     l_fadj: I3,
     l_b0: V3,
@@ -982,7 +1021,7 @@ def xpbd_frame(
     omega = P[P_OMEGA]
     recover = P[P_RECOVER]
     odo0 = P[P_ODO]
-    travel = P[P_TRAVEL]
+    body_travel = P[P_TRAVEL]
     cell = P[P_CELL]
     inv_cell = P[P_INV_CELL]
     gravity = vec3(P[P_GRAVITY], P[P_GRAVITY + 1], P[P_GRAVITY + 2])
@@ -996,6 +1035,10 @@ def xpbd_frame(
     l_cell = P[P_L_CELL]
     l_odo0 = P[P_L_ODO]
     l_travel = P[P_L_TRAVEL]
+    tag = P[P_TAG]
+    l_tag = P[P_L_TAG]
+    shift = vec3(P[P_SHIFT], P[P_SHIFT + 1], P[P_SHIFT + 2])
+    l_shift = vec3(P[P_L_SHIFT], P[P_L_SHIFT + 1], P[P_L_SHIFT + 2])
     n_sub = Q[Q_N_SUB]
     n_iter = Q[Q_N_ITER]
     sweep0 = Q[Q_SWEEP0]
@@ -1053,7 +1096,7 @@ def xpbd_frame(
             for i in range(n):
                 nearest_one(
                     i, x, w, bs1, bs1, faces, origin, inv_cell, dims, starts, items, 1.0, cell,
-                    tri, 1, guard, odo0 + s1 * travel,
+                    tri, 1, guard, odo0 + s1 * body_travel, tag, s1, shift, travel,
                 )
             for i in range(n):
                 collide_one(
@@ -1084,7 +1127,8 @@ def xpbd_frame(
             for i in range(n):
                 nearest_one(
                     i, x, l_w, l_b0, l_b1, l_faces, l_origin, l_inv_cell, l_dims, l_starts,
-                    l_items, s1, l_cell, l_tri, 1, l_guard, l_odo0 + s1 * l_travel,
+                    l_items, s1, l_cell, l_tri, 1, l_guard, l_odo0 + s1 * l_travel, l_tag, s1,
+                    l_shift, l_travel_v,
                 )
             for i in range(n):
                 collide_one(

@@ -345,7 +345,7 @@ class _Simulation:
         went from 2.5 % of its edges over the bound to 0.06 % at 4x.)"""
         solver = self.solver
         x0, v0 = solver.get_state()
-        tri0 = solver.tri.to_numpy()
+        tracking0 = solver.get_tracking()
         every = self.options.profile_every
         search = step % self.options.search_every == 0
         reason = self._frame(solver, f0, f1, every > 0 and step % every == 0, search)
@@ -388,12 +388,12 @@ class _Simulation:
                 self.solvers[sub] = self._solver(sub)
             current = self.solvers[sub]
             current.set_state(x0, v0)
-            current.tri.from_numpy(tri0)
+            current.set_tracking(tracking0)
             reason = self._frame(current, f0, f1, False)
         if current is not solver:
             x, v = current.get_state()
             solver.set_state(x, v)
-            solver.tri.from_numpy(current.tri.to_numpy())
+            solver.set_tracking(current.get_tracking())
         self.frame_substeps.append(self.substeps * 2**level)
 
     def _over_strain(self, solver) -> float:

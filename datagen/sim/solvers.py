@@ -50,9 +50,10 @@ class SolverSettings:
 
 
 def fresh_guards(n: int) -> np.ndarray:
-    """Per-vertex search guards (position, odometer) that make the first search happen."""
-    g = np.zeros((n, 4), NP_REAL)
-    g[:, 3] = -1e30
+    """Per-vertex search guards (kernels.nearest_one) that make the first search happen: an
+    odometer reading from long ago, and no grid (grids are numbered from 1)."""
+    g = np.zeros((n, K.GUARD.n), NP_REAL)
+    g[:, K.G_ODO] = -1e30
     return g
 
 
@@ -103,7 +104,7 @@ class ClothSolver:
         self.thickness = _nd(REAL, model.thickness.astype(NP_REAL))
         self.friction = _nd(REAL, model.friction.astype(NP_REAL))
         self.tri = _nd(ti.i32, -np.ones(n, np.int32))
-        self.guard = _nd(VEC4, fresh_guards(n))
+        self.guard = _nd(K.GUARD, fresh_guards(n))
         self.odo = 0.0  # metres the body's fastest vertex has travelled (see nearest_one)
         self.contact_n = _nd(VEC3, np.zeros((n, 3), NP_REAL))
         self.contact_v = _nd(VEC3, np.zeros((n, 3), NP_REAL))
@@ -214,7 +215,7 @@ class ClothSolver:
             layer_w[model.pinned if self.effects.pins else []] = 0.0
         self.layer_w = _nd(REAL, layer_w)
         self.layer_tri = _nd(ti.i32, -np.ones(self.n, np.int32))
-        self.layer_guard = _nd(VEC4, fresh_guards(self.n))
+        self.layer_guard = _nd(K.GUARD, fresh_guards(self.n))
         self.layer_odo = 0.0  # metres the inner garment's fastest vertex has travelled
         self.layer_travel = 0.0  # ... and travels in the current frame
 
@@ -269,6 +270,25 @@ class ClothSolver:
     def set_state(self, x: np.ndarray, v: np.ndarray) -> None:
         self.x.from_numpy(np.asarray(x, NP_REAL))
         self.v.from_numpy(np.asarray(v, NP_REAL))
+
+    def get_tracking(self) -> dict:
+        """What the collision search knows: tracked triangles, search guards and odometers. A
+        solver that takes over a frame (a retry with more substeps) needs it with the state: a
+        guard is only a proof together with the odometer it was measured on."""
+        tracking = {"tri": self.tri.to_numpy(), "guard": self.guard.to_numpy(), "odo": self.odo}
+        if self.use_layers:
+            tracking.update(layer_tri=self.layer_tri.to_numpy(),
+                            layer_guard=self.layer_guard.to_numpy(), layer_odo=self.layer_odo)
+        return tracking
+
+    def set_tracking(self, tracking: dict) -> None:
+        self.tri.from_numpy(tracking["tri"])
+        self.guard.from_numpy(tracking["guard"])
+        self.odo = tracking["odo"]
+        if self.use_layers:
+            self.layer_tri.from_numpy(tracking["layer_tri"])
+            self.layer_guard.from_numpy(tracking["layer_guard"])
+            self.layer_odo = tracking["layer_odo"]
 
     def set_pin_targets(self, t0: np.ndarray, t1: np.ndarray) -> None:
         if self.n_pins:
@@ -440,6 +460,10 @@ class XPBDSolver(ClothSolver):
         P[K.P_L_CELL] = lc.cell
         P[K.P_L_ODO] = self.layer_odo
         P[K.P_L_TRAVEL] = self.layer_travel
+        P[K.P_TAG] = c.grid_tag
+        P[K.P_L_TAG] = lc.grid_tag
+        P[K.P_SHIFT : K.P_SHIFT + 3] = c.shift_np
+        P[K.P_L_SHIFT : K.P_L_SHIFT + 3] = lc.shift_np
         Q = np.zeros(K.Q_SIZE, np.int32)
         Q[K.Q_N_SUB] = n_sub
         Q[K.Q_N_ITER] = self.settings.iterations
@@ -461,10 +485,10 @@ class XPBDSolver(ClothSolver):
             self.pin_idx, self.pin_t0, self.pin_t1,
             self.tri, c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, c.bs0, c.bs1, c.ns1,
             self.thickness, self.friction, self.contact_n, self.contact_v,
-            c.starts, c.items, self.guard,
+            c.starts, c.items, self.guard, c.travel,
             self.s_owner, self.s_rest, self.s_counts, self.s_starts, self.s_items,
-            self.layer_w, self.layer_tri, self.layer_guard, lc.faces, lc.fadj, lc.b0, lc.b1,
-            lc.n0, lc.n1,
+            self.layer_w, self.layer_tri, self.layer_guard, lc.travel, lc.faces, lc.fadj,
+            lc.b0, lc.b1, lc.n0, lc.n1,
             lc.starts, lc.items,
             self.P, self.Q,
             e.gravity, e.air_drag or e.wind, use_collision, e.friction, self.use_layers,
@@ -501,6 +525,9 @@ class XPBDSolver(ClothSolver):
                 starts=i1,
                 items=i1,
                 cell=1.0,
+                grid_tag=0,
+                shift_np=np.zeros(3),
+                travel=_nd(REAL, np.zeros(1, NP_REAL)),
             )
         return self._dummy_collider
 
