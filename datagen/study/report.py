@@ -51,11 +51,9 @@ def comparison(rows: list[Row], presets: dict[str, tuple[int, int]]) -> list[str
             )
             # Why: how much of the default's time buys accuracy beyond Blender's, i.e. what our
             # cheapest run on the same mesh at Blender's error would give.
-            same_mesh = [r for r in rows if (r.scene, r.fabric) == (scene, fabric)
-                         and r.series != "blender" and r.note == "" and _measured(r)
-                         and r.rms_mm <= b.rms_mm]
-            if ratio < 20 and same_mesh:
-                c = min(same_mesh, key=lambda r: r.seconds_per_sim_second)
+            c = cheapest_within([r for r in rows if (r.scene, r.fabric) == (scene, fabric)
+                                 and r.series != "blender" and r.note == ""], b.rms_mm)
+            if ratio < 20 and c is not None:
                 line += (f" Part of the gap is accuracy: the default's error is "
                          f"{b.rms_mm / max(d.rms_mm, 1e-9):.1f}x lower than Blender's; at "
                          f"Blender's error our cheapest run on this mesh is "
@@ -86,15 +84,20 @@ def equal_error_speed(rows: list[Row]) -> list[str]:
         for b in sorted((r for r in mine if r.series == "blender"), key=lambda r: r.substeps):
             head = (f"| {scene}/{fabric} | q{b.substeps} | {_fmt(b.rms_mm)} | "
                     f"{_fmt(b.seconds_per_sim_second)} | ")
-            good = [r for r in ours if r.rms_mm <= b.rms_mm]
-            if not good:
+            c = cheapest_within(ours, b.rms_mm)
+            if c is None:
                 lines.append(head + "none of ours is this close | | | |")
                 continue
-            c = min(good, key=lambda r: r.seconds_per_sim_second)
             lines.append(head + f"{_label(c)} | {_fmt(c.rms_mm)} | "
                          f"{_fmt(c.seconds_per_sim_second)} | "
                          f"{b.seconds_per_sim_second / c.seconds_per_sim_second:.1f}x |")
     return lines if len(lines) > 2 else []
+
+
+def cheapest_within(runs: list[Row], error_mm: float) -> Row | None:
+    """The fastest measured run with an error no larger than `error_mm`, or None."""
+    good = [r for r in runs if _measured(r) and r.rms_mm <= error_mm]
+    return min(good, key=lambda r: r.seconds_per_sim_second) if good else None
 
 
 def _other_mesh(r: Row) -> bool:
