@@ -87,7 +87,7 @@ def test_a_stopped_study_keeps_its_finished_parts(tmp_path):
     assert not reusable(part, signature, have_blender=True)  # Blender's series is missing
 
 
-def test_report_only_names_the_parts_not_measured_yet(tmp_path):
+def test_report_only_names_the_parts_not_measured_yet_or_measured_earlier(tmp_path):
     import json
     from dataclasses import asdict
 
@@ -116,6 +116,16 @@ def test_report_only_names_the_parts_not_measured_yet(tmp_path):
     assert rows == [row] and summary["missing_parts"] == expected
     with pytest.raises(click.UsageError, match="tshirt_walk/silk: not a part of the full plan"):
         run_study(tmp_path, blender=False, only={"tshirt_walk/silk"}, log=lambda _: None)
+    # A part the simulator has changed under is reported, marked, until it is measured again
+    part["signature"]["simulator"] = "0" * 16
+    path.write_text(json.dumps(part))
+    summary, rows = run_study(tmp_path, blender=False, measure=False, log=lambda _: None)
+    assert rows == [row] and summary["earlier_simulator_parts"] == [part["key"]]
+    assert summary["missing_parts"] == expected
+    part["signature"]["frames"] = 999  # ... but not one measured under another plan
+    path.write_text(json.dumps(part))
+    with pytest.raises(click.UsageError, match="no finished part"):
+        run_study(tmp_path, blender=False, measure=False, log=lambda _: None)
 
 
 def test_a_failing_finer_rung_ends_the_reference_ladder(monkeypatch):

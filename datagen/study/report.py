@@ -236,6 +236,11 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
             "finished parts; running the same command again measures the rest. The body "
             "scenes' parts cost most: their float64 reference ladders step 11-12k vertices in "
             "contact with the body at up to 160 substeps."]),
+        *([] if not summary.get("earlier_simulator_parts") else [
+            "",
+            f"**Measured with an earlier version of the simulator: "
+            f"{', '.join(summary['earlier_simulator_parts'])}.** Their figures (errors and "
+            "times) stand for that version; `--part` measures them again with this one."]),
         "",
         "## The scenes",
         "",
