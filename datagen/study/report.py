@@ -235,7 +235,9 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
             f"not measured yet: {', '.join(summary['missing_parts'])}.** The run keeps "
             "finished parts; running the same command again measures the rest. The body "
             "scenes' parts cost most: their float64 reference ladders step 11-12k vertices in "
-            "contact with the body at up to 160 substeps."]),
+            "contact with the body at up to "
+            f"{max(s['substeps'] for ladder in summary['ladders'].values() for s in ladder)} "
+            "substeps."]),
         *([] if not summary.get("earlier_simulator_parts") else [
             "",
             f"**Measured with an earlier version of the simulator: "
