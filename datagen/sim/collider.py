@@ -75,8 +75,8 @@ class BodyCollider:
         self.bs0 = ti.ndarray(VEC3, n_vertices)
         self.bs1 = ti.ndarray(VEC3, n_vertices)
         self.ns1 = ti.ndarray(VEC3, n_vertices)
-        self.travel = ti.ndarray(REAL, n_vertices)  # each vertex's travel over the frame
-        self.travel.fill(0.0)
+        self.relative_travel = ti.ndarray(REAL, n_vertices)  # from the mean motion, per frame
+        self.relative_travel.fill(0.0)
         self.shift_np = np.zeros(3)
         self._n_cells_alloc = 0
         self.counts = self.starts = self.items = None
@@ -109,7 +109,8 @@ class BodyCollider:
         # The body's mean motion over the frame, and each vertex's distance from it: cloth
         # near the torso moves with it (kernels.nearest_one's guards).
         self.shift_np = motion.mean(axis=0)
-        self.travel.from_numpy(np.linalg.norm(motion - self.shift_np, axis=1).astype(NP_REAL))
+        relative = np.linalg.norm(motion - self.shift_np, axis=1)
+        self.relative_travel.from_numpy(relative.astype(NP_REAL))
         self._at_rest = bool(np.array_equal(v0, v1))
         if np.array_equal(v0, v1):
             self.b1.copy_from(self.b0)
@@ -205,7 +206,7 @@ class BodyCollider:
         K.grid_nearest(x, w, self.b0, self.b1, self.faces, self.origin, self.inv_cell,
                        self.dims, self.starts, self.items, float(s), float(self.cell), tri,
                        int(only_untracked), guard, float(odo), float(self.grid_tag),
-                       VEC3(*self.shift_np), self.travel)
+                       VEC3(*self.shift_np), self.relative_travel)
 
     def _scratch_guard(self, n: int):
         from datagen.sim.solvers import fresh_guards

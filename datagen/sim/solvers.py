@@ -485,10 +485,10 @@ class XPBDSolver(ClothSolver):
             self.pin_idx, self.pin_t0, self.pin_t1,
             self.tri, c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, c.bs0, c.bs1, c.ns1,
             self.thickness, self.friction, self.contact_n, self.contact_v,
-            c.starts, c.items, self.guard, c.travel,
+            c.starts, c.items, self.guard, c.relative_travel,
             self.s_owner, self.s_rest, self.s_counts, self.s_starts, self.s_items,
-            self.layer_w, self.layer_tri, self.layer_guard, lc.travel, lc.faces, lc.fadj,
-            lc.b0, lc.b1, lc.n0, lc.n1,
+            self.layer_w, self.layer_tri, self.layer_guard, lc.relative_travel,
+            lc.faces, lc.fadj, lc.b0, lc.b1, lc.n0, lc.n1,
             lc.starts, lc.items,
             self.P, self.Q,
             e.gravity, e.air_drag or e.wind, use_collision, e.friction, self.use_layers,
@@ -527,7 +527,7 @@ class XPBDSolver(ClothSolver):
                 cell=1.0,
                 grid_tag=0,
                 shift_np=np.zeros(3),
-                travel=_nd(REAL, np.zeros(1, NP_REAL)),
+                relative_travel=_nd(REAL, np.zeros(1, NP_REAL)),
             )
         return self._dummy_collider
 
