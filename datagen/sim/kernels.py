@@ -506,6 +506,23 @@ def apply_pins(x: V3, pin_idx: I1, t0: V3, t1: V3, s: REAL):
         x[pin_idx[p]] = lerp3(t0[p], t1[p], s)
 
 
+@ti.func
+def tether_one(t: ti.i32, x: V3, tethers: I2, length: F1):
+    """Pull a vertex that is farther from its pin than the strain limit allows back onto
+    that distance (the pin, weightless, stays)."""
+    i = tethers[t][0]
+    d = x[i] - x[tethers[t][1]]
+    dl = d.norm()
+    if dl > length[t]:
+        x[i] -= (1.0 - length[t] / dl) * d
+
+
+@ti.kernel
+def apply_tethers(x: V3, tethers: I2, length: F1):
+    for t in tethers:
+        tether_one(t, x, tethers, length)
+
+
 # -- body collision ----------------------------------------------------------------------------
 @ti.func
 def collide_one(
@@ -944,7 +961,8 @@ P_SHIFT, P_L_SHIFT = 28, 31  # 3 values each
 P_SIZE = 34
 Q_N_SUB, Q_N_ITER, Q_SWEEP0, Q_N_SETS, Q_N_BENDS, Q_N_PINS, Q_S_MASK = range(7)
 Q_DIMS, Q_L_DIMS = 7, 10  # 3 values each
-Q_SIZE = 13
+Q_N_TETHERS = 13
+Q_SIZE = 14
 
 
 @ti.kernel
@@ -970,6 +988,8 @@ def xpbd_frame(
     pin_idx: I1,
     pin_t0: V3,
     pin_t1: V3,
+    tethers: I2,
+    tether_len: F1,
     tri: I1,
     faces: I3,
     fadj: I3,
@@ -1045,6 +1065,7 @@ def xpbd_frame(
     n_sets = Q[Q_N_SETS]
     n_bends = Q[Q_N_BENDS]
     n_pins = Q[Q_N_PINS]
+    n_tethers = Q[Q_N_TETHERS]
     s_mask = Q[Q_S_MASK]
     dims = ti.math.ivec3(Q[Q_DIMS], Q[Q_DIMS + 1], Q[Q_DIMS + 2])
     l_dims = ti.math.ivec3(Q[Q_L_DIMS], Q[Q_L_DIMS + 1], Q[Q_L_DIMS + 2])
@@ -1084,6 +1105,9 @@ def xpbd_frame(
                     spring_gs_one(
                         e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, h, omega
                     )
+        # After the sweeps: what they left beyond a tether goes back onto it before contact.
+        for t in range(n_tethers):
+            tether_one(t, x, tethers, tether_len)
         if ti.static(use_collision):
             # The body at this substep's start and end, once, instead of per cloth vertex.
             for j in range(b0.shape[0]):

@@ -84,6 +84,9 @@ class ClothSolver:
     """State and the parts every solver shares: external forces, pins, collision, timing."""
 
     name = "base"
+    # Long-range attachments to the pins (ClothModel.tethers): the xpbd solver's sweeps need them
+    # to hold a hanging garment's strain limit; the others project the limit to a tolerance.
+    uses_tethers = False
 
     def __init__(self, model: ClothModel, effects: Effects, settings: SolverSettings) -> None:
         init_taichi()
@@ -138,6 +141,11 @@ class ClothSolver:
             self.pin_idx = _nd(ti.i32, model.pinned.astype(np.int32))
             self.pin_t0 = ti.ndarray(VEC3, self.n_pins)
             self.pin_t1 = ti.ndarray(VEC3, self.n_pins)
+        pairs, lengths = model.tethers if self.n_pins and self.uses_tethers else (None, ())
+        self.n_tethers = len(lengths)
+        if self.n_tethers:
+            self.tethers = _nd(ti.math.ivec2, pairs)
+            self.tether_len = _nd(REAL, lengths.astype(NP_REAL))
         self.costs: dict[str, float] = defaultdict(float)
         self.launches: dict[str, int] = defaultdict(int)
         self._sweep = 0
@@ -376,6 +384,7 @@ def _unelastic(model: ClothModel) -> ClothModel:
 
 class XPBDSolver(ClothSolver):
     name = "xpbd"
+    uses_tethers = True
 
     def __init__(self, model, effects, settings) -> None:
         super().__init__(model, effects, settings)
@@ -424,6 +433,9 @@ class XPBDSolver(ClothSolver):
         if not self.n_pins:
             self.pin_idx = _nd(ti.i32, np.zeros(1, np.int32))
             self.pin_t0 = self.pin_t1 = ti.ndarray(VEC3, 1)
+        if not self.n_tethers:
+            self.tethers = _nd(ti.math.ivec2, np.zeros((1, 2), np.int32))
+            self.tether_len = _nd(REAL, np.zeros(1, NP_REAL))
         self._dummy_collider = None
         self.P = ti.ndarray(REAL, K.P_SIZE)
         self.Q = ti.ndarray(ti.i32, K.Q_SIZE)
@@ -471,6 +483,7 @@ class XPBDSolver(ClothSolver):
         Q[K.Q_N_SETS] = self.f_nsets
         Q[K.Q_N_BENDS] = self.n_bends
         Q[K.Q_N_PINS] = self.n_pins
+        Q[K.Q_N_TETHERS] = self.n_tethers
         Q[K.Q_S_MASK] = self.s_mask
         Q[K.Q_DIMS : K.Q_DIMS + 3] = c.dims_np
         Q[K.Q_L_DIMS : K.Q_L_DIMS + 3] = lc.dims_np
@@ -482,7 +495,7 @@ class XPBDSolver(ClothSolver):
             self.f_lam,
             self.f_ranges,
             self.bends, self.kw, self.bcomp, self.bbeta, self.lam_b,
-            self.pin_idx, self.pin_t0, self.pin_t1,
+            self.pin_idx, self.pin_t0, self.pin_t1, self.tethers, self.tether_len,
             self.tri, c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, c.bs0, c.bs1, c.ns1,
             self.thickness, self.friction, self.contact_n, self.contact_v,
             c.starts, c.items, self.guard, c.relative_travel,
@@ -614,6 +627,8 @@ class XPBDSolver(ClothSolver):
                     )
             else:
                 self._jacobi_iteration(h, bend)
+        if self.n_tethers:  # after the sweeps, as in the fused kernel
+            self._run("pins", K.apply_tethers, self.x, self.tethers, self.tether_len)
         self._collide(collider, s0, s1, h)
         self._cloth_collisions(h, s0, s1)
         self._run(
