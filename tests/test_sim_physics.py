@@ -300,8 +300,9 @@ def test_frames_over_the_strain_bound_are_redone_with_more_substeps(monkeypatch)
     assert plain.report["strain_refinements"] == 0 and plain.report["frame_substeps_max"] == 10
     assert refined.report["frame_substeps_max"] in (20, 40)
     assert refined.report["strain_refinements"] > 0
-    # measured: 0.020 against 0.060 at the last frame
-    assert refined.qa["strain_p999"][-1] < 0.5 * plain.qa["strain_p999"][-1]
+    # The plain run ends over the bound, the refined one within it (measured: 0.025 and 0.019;
+    # 0.060 and 0.020 before the strain limit had the last word over friction).
+    assert refined.qa["strain_p999"][-1] < 0.02 < plain.qa["strain_p999"][-1]
     # A sheet pinned along two lines on a cylinder that widens by 60 %: the band between the
     # pins must stretch, whatever the substeps. Once a frame's 4x run does not help, the
     # refinement rests, so most over-strained frames are not redone. (Without tethers: they
@@ -349,6 +350,34 @@ def test_every_solver_holds_fabric_within_its_strain_limit():
         worst[solver] = float(strain.max())
     for value in worst.values():
         assert STRAIN_LIMIT_FRACTION * soft.max_strain * 0.95 < value < soft.max_strain, worst
+
+
+def test_a_tight_sleeve_slides_on_a_lengthening_limb_instead_of_stretching_past_its_limit():
+    """A tight cotton sleeve (8 % smaller than the limb) on a limb that lengthens by 30 % in a
+    second, the skin carrying the sleeve by friction. The strain limit wins over static friction
+    (kernels.limit_after_contact_one): the sleeve slides up with the skin but no fabric edge
+    ends a frame past the limit. With contact having the last word, 1.2 % of the edges ended
+    over cotton's bound, the worst at strain 0.32 (measured)."""
+    from datagen.sim.model import STRAIN_LIMIT_FRACTION
+    from datagen.sim.scenes import cylinder_mesh, tube
+
+    radius, frames = 0.06, 30
+    cv, cf = cylinder_mesh(radius, 0.5, sections=48, rings=40)
+    limb = np.repeat(cv[None], frames + 1, axis=0)
+    limb[:, :, 2] *= 1.0 + 0.3 * np.arange(frames + 1)[:, None] / frames
+    track = ColliderTrack(limb, cf, np.ones(len(cf), bool))
+    sleeve = tube(radius / 1.08, 0.3, 40, 30, top=0.4)
+    result = simulate([sleeve], track, SimOptions(settle_seconds=0.0, strain_refinements=0))
+    model = build_cloth_model([(sleeve, FABRICS["cotton"])])
+    x = result.vertices[sleeve.name].astype(np.float64)
+    e = model.springs[model.fabric_springs]
+    strain = (np.linalg.norm(x[:, e[:, 1]] - x[:, e[:, 0]], axis=2)
+              / model.rest_length[model.fabric_springs] - 1.0)
+    limit = STRAIN_LIMIT_FRACTION * FABRICS["cotton"].max_strain
+    assert strain.max() < limit + 2e-3, strain.max()  # the sweeps stop at 0.1 % past it
+    assert strain.max() > 0.99 * limit  # it is tight: the limit holds it
+    assert x[-1, :, 2].mean() - x[0, :, 2].mean() > 0.05  # the skin carried it up
+    assert result.qa["deep_share"].max() == 0.0
 
 
 def test_tethers_are_the_strain_limits_shortest_path_to_a_pin():

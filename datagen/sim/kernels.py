@@ -24,6 +24,10 @@ I3 = ti.types.ndarray(dtype=ti.math.ivec3, ndim=1)
 I4 = ti.types.ndarray(dtype=ti.math.ivec4, ndim=1)
 
 WALK_STEPS = 8  # most triangles a cloth vertex's walk to its closest body triangle visits
+# The strain limit's sweeps after contact (limit_after_contact_one): until no spring is more
+# than the tolerance (relative) past its limit, at most this many.
+AFTER_CONTACT_SWEEPS = 4
+AFTER_CONTACT_TOLERANCE = 1e-3
 
 
 # -- geometry ----------------------------------------------------------------------------------
@@ -305,6 +309,52 @@ def limit_strain(x: V3, v: V3, w: F1, springs: I2, limit: F1, h: REAL, reverse: 
             x[j] -= w[j] * move
             v[i] += w[i] * move / h
             v[j] -= w[j] * move / h
+    return worst
+
+
+@ti.func
+def limit_after_contact_one(
+    e: ti.i32, x: V3, w: F1, springs: I2, limit: F1, contact_n: V3
+) -> REAL:
+    """Shorten spring e to its limit length if contact left it longer, moving a vertex in
+    contact only along the body (never into it).
+
+    Contact comes after the strain limit in a substep, and static friction puts a vertex back
+    where the body carried it, which undoes the limit's last correction: fabric held by friction
+    on skin stayed past the limit where the skin stretched (a raised arm's sleeves, a crouching
+    back). At the limit the fabric is inextensible, its tension beyond any Coulomb bound, so
+    the limit wins over friction; the normal part of contact still wins over the limit."""
+    i = springs[e][0]
+    j = springs[e][1]
+    d = x[j] - x[i]
+    length = d.norm()
+    wsum = w[i] + w[j]
+    excess = 0.0
+    if length > limit[e] and wsum > 0.0:
+        excess = length / limit[e] - 1.0
+        move = (length - limit[e]) / (wsum * length) * d
+        mi = w[i] * move
+        mj = -w[j] * move
+        ni = contact_n[i]
+        nj = contact_n[j]
+        mi -= ti.min(0.0, mi.dot(ni)) * ni  # a zero normal (no contact) changes nothing
+        mj -= ti.min(0.0, mj.dot(nj)) * nj
+        x[i] += mi
+        x[j] += mj
+    return excess
+
+
+@ti.kernel
+def limit_after_contact(
+    x: V3, w: F1, springs: I2, limit: F1, contact_n: V3, reverse: ti.i32
+) -> REAL:
+    """One sweep of limit_after_contact_one; returns the largest excess met (relative)."""
+    worst = 0.0
+    n_springs = springs.shape[0]
+    ti.loop_config(serialize=True)
+    for k in range(n_springs):
+        e = sweep_order(k, n_springs, reverse)
+        worst = ti.max(worst, limit_after_contact_one(e, x, w, springs, limit, contact_n))
     return worst
 
 
@@ -1167,6 +1217,18 @@ def xpbd_frame(
                     i, x, w, s_owner, s_rest, s_starts, s_items, s_inv_cell, s_mask, s_radius,
                     s_min_rest,
                 )
+        if ti.static(use_collision or use_layers):
+            if n_sets > 0:
+                n_sp = springs.shape[0]
+                for sweep in range(AFTER_CONTACT_SWEEPS):
+                    worst = 0.0
+                    for m in range(n_sp):
+                        e = sweep_order(m, n_sp, sweep % 2)
+                        worst = ti.max(
+                            worst, limit_after_contact_one(e, x, w, springs, limit, contact_n)
+                        )
+                    if worst < AFTER_CONTACT_TOLERANCE:
+                        break
         for i in range(n):
             finish_one(i, x, xp, v, w, contact_n, contact_v, h)
 

@@ -179,6 +179,21 @@ class ClothSolver:
                 break
         self.costs["strain_limit"] += time.perf_counter() - t
 
+    def _limit_after_contact(self, collider) -> None:
+        """The strain limit's sweeps after contact, along the body (see
+        kernels.limit_after_contact_one): every solver ends its substep with them."""
+        contact = (collider is not None and self.effects.body_collision) or self.use_layers
+        if not (self.n_limited and contact):
+            return
+        t = time.perf_counter()
+        for sweep in range(K.AFTER_CONTACT_SWEEPS):
+            worst = K.limit_after_contact(self.x, self.w, self.limited, self.limited_length,
+                                          self.contact_n, sweep % 2)
+            self.launches["strain_limit"] += 1
+            if worst < K.AFTER_CONTACT_TOLERANCE:
+                break
+        self.costs["strain_limit"] += time.perf_counter() - t
+
     # -- cloth-cloth collision ---------------------------------------------------------------
     def _init_self_collision(self) -> None:
         """Vertex-vertex repulsion within each garment: vertices closer than `radius` that are
@@ -631,6 +646,7 @@ class XPBDSolver(ClothSolver):
             self._run("pins", K.apply_tethers, self.x, self.tethers, self.tether_len)
         self._collide(collider, s0, s1, h)
         self._cloth_collisions(h, s0, s1)
+        self._limit_after_contact(collider)
         self._run(
             "integration",
             K.finish,
@@ -757,6 +773,7 @@ class ExplicitSolver(ClothSolver):
         self._pins(s1)
         self._collide(collider, s0, s1, h)
         self._cloth_collisions(h, s0, s1)
+        self._limit_after_contact(collider)
         self._run(
             "integration",
             K.finish_contacts,
