@@ -16,6 +16,10 @@ Two targets give the garment its two geometries (datagen.types.Garment):
   offsets gamma = (size, girth) in [-1.5, 0.5]^2 applied to the size and girth phenotypes
   (height and weight for Anny), in units of a sixth of their range (CLOTH3D's betas span
   [-3, 3], six units); negative gamma makes the garment for a bigger body: looser.
+  The transfer follows the body's surface, which at the extremes of shape changes unevenly (a
+  short subject's knees shrink vertically to half the body's mean scale, a heavy subject's inner
+  thighs more): the rest shape is then graded (`grade`), as a pattern maker grades a size, so
+  that no edge's scale change departs from the garment's mean by more than GRADING_BAND.
 - `vertices`, the starting positions: the same transfer to the subject's own body, pushed out
   where needed so no vertex starts closer than CLEARANCE to the body. A tight garment thus starts
   stretched around the body and contracts onto it in the simulation; a loose one starts
@@ -26,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import spsolve
+from scipy.sparse.linalg import factorized, spsolve
 from scipy.spatial import cKDTree
 
 from datagen.types import RestBody
@@ -41,6 +45,13 @@ NEIGHBOURS = 8  # body vertices averaged per garment vertex
 # (diffusion over about sqrt(SMOOTHING) edges at the skin, growing with the distance).
 FOLLOW_DISTANCE = 0.02  # m
 SMOOTHING = 10.0
+# Grading: every edge's scale change within this share of the garment's mean scale change (the
+# garments issue asks for 30 %; the solve stops once every edge is within GRADING_BAND + 5 %,
+# and 10 reweighted solves leave the extreme subjects within 25 %).
+GRADING_BAND = 0.15
+GRADING_ROUNDS = 10
+GRADING_WEIGHT_GROWTH = 4.0  # an edge outside the band weighs this much more each round
+GRADING_ANCHOR = 1e-3  # weight that holds each vertex to the transfer (edges weigh 1)
 
 
 def garment_body_shape(
@@ -106,6 +117,44 @@ def transfer_displacement(
     follow = 1.0 / (1.0 + (dist[:, 0] / FOLLOW_DISTANCE) ** 2)
     system = (sp.diags(follow) + SMOOTHING * graph_laplacian(len(garment), faces)).tocsc()
     return np.asarray(spsolve(system, follow[:, None] * body_disp)).reshape(body_disp.shape)
+
+
+def grade(template_vertices: np.ndarray, resized: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The resized garment with every edge's scale change (its length over the template's)
+    brought within GRADING_BAND of the mean scale change, the rest of the shape kept.
+
+    A gradient-domain solve: positions whose edge vectors best match the current edges' with
+    their lengths clamped to the band, held weakly to `resized`; reweighted least squares (an
+    edge still outside the band weighs more each round) until every edge is within the band plus
+    5 %, at most GRADING_ROUNDS solves. A garment already within it is returned unchanged."""
+    from datagen.sim.model import edges_of
+
+    e = edges_of(faces)[0]
+    template_length = np.linalg.norm(template_vertices[e[:, 1]] - template_vertices[e[:, 0]],
+                                     axis=1)
+    e = e[template_length > 1e-6]  # a zero-length template edge has no scale to keep
+    template_length = template_length[template_length > 1e-6]
+    n, m = len(resized), len(e)
+    rows = np.r_[np.arange(m), np.arange(m)]
+    incidence = sp.csr_matrix((np.r_[np.ones(m), -np.ones(m)], (rows, np.r_[e[:, 1], e[:, 0]])),
+                              shape=(m, n))
+    out = np.array(resized, dtype=np.float64, copy=True)
+    weight = np.ones(m)
+    for _ in range(GRADING_ROUNDS):
+        d = out[e[:, 1]] - out[e[:, 0]]
+        length = np.linalg.norm(d, axis=1)
+        scale = length / template_length
+        low, high = scale.mean() * (1.0 - GRADING_BAND), scale.mean() * (1.0 + GRADING_BAND)
+        slack = 0.05 * scale.mean()
+        if np.all((scale >= low - slack) & (scale <= high + slack)):
+            break
+        weight = np.where((scale < low) | (scale > high), weight * GRADING_WEIGHT_GROWTH, weight)
+        target = d * (np.clip(scale, low, high) / np.maximum(scale, 1e-12))[:, None]
+        system = incidence.T @ sp.diags(weight) @ incidence + GRADING_ANCHOR * sp.identity(n)
+        solve = factorized(system.tocsc())
+        rhs = incidence.T @ (weight[:, None] * target) + GRADING_ANCHOR * resized
+        out = np.column_stack([solve(rhs[:, k]) for k in range(3)])
+    return out
 
 
 def _pseudonormal_side(mesh, points: np.ndarray, closest: np.ndarray,
@@ -223,8 +272,8 @@ def resize(
     start = template_vertices + transfer_displacement(
         template_vertices, faces, src, subject.vertices
     )
-    rest = template_vertices + transfer_displacement(
+    rest = grade(template_vertices, template_vertices + transfer_displacement(
         template_vertices, faces, src, garment_body.vertices
-    )
+    ), faces)
     start = push_out(start, faces, subject)
     return start, rest
