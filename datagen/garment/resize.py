@@ -132,12 +132,12 @@ def grade(template_vertices: np.ndarray, resized: np.ndarray, faces: np.ndarray)
     e = edges_of(faces)[0]
     template_length = np.linalg.norm(template_vertices[e[:, 1]] - template_vertices[e[:, 0]],
                                      axis=1)
-    e = e[template_length > 1e-6]  # a zero-length template edge has no scale to keep
-    template_length = template_length[template_length > 1e-6]
+    has_scale = template_length > 1e-6  # a zero-length template edge has no scale to keep
+    e, template_length = e[has_scale], template_length[has_scale]
     n, m = len(resized), len(e)
-    rows = np.r_[np.arange(m), np.arange(m)]
-    incidence = sp.csr_matrix((np.r_[np.ones(m), -np.ones(m)], (rows, np.r_[e[:, 1], e[:, 0]])),
-                              shape=(m, n))
+    incidence = sp.csr_matrix(
+        (np.r_[np.ones(m), -np.ones(m)], (np.tile(np.arange(m), 2), np.r_[e[:, 1], e[:, 0]])),
+        shape=(m, n))
     out = np.array(resized, dtype=np.float64, copy=True)
     weight = np.ones(m)
     for _ in range(GRADING_ROUNDS):
