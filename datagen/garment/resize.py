@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import factorized, spsolve
+from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 from datagen.types import RestBody
@@ -115,8 +115,8 @@ def transfer_displacement(
     w /= w.sum(axis=1, keepdims=True)
     body_disp = np.einsum("vk,vkd->vd", w, target_body[idx] - source_body[idx])
     follow = 1.0 / (1.0 + (dist[:, 0] / FOLLOW_DISTANCE) ** 2)
-    system = (sp.diags(follow) + SMOOTHING * graph_laplacian(len(garment), faces)).tocsc()
-    return np.asarray(spsolve(system, follow[:, None] * body_disp)).reshape(body_disp.shape)
+    system = sp.diags(follow) + SMOOTHING * graph_laplacian(len(garment), faces)
+    return _spd_solver(system)(follow[:, None] * body_disp)
 
 
 def grade(template_vertices: np.ndarray, resized: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -151,10 +151,18 @@ def grade(template_vertices: np.ndarray, resized: np.ndarray, faces: np.ndarray)
         weight = np.where((scale < low) | (scale > high), weight * GRADING_WEIGHT_GROWTH, weight)
         target = d * (np.clip(scale, low, high) / np.maximum(scale, 1e-12))[:, None]
         system = incidence.T @ sp.diags(weight) @ incidence + GRADING_ANCHOR * sp.identity(n)
-        solve = factorized(system.tocsc())
+        solve = _spd_solver(system)
         rhs = incidence.T @ (weight[:, None] * target) + GRADING_ANCHOR * resized
-        out = np.column_stack([solve(rhs[:, k]) for k in range(3)])
+        out = solve(np.asarray(rhs))
     return out
+
+
+def _spd_solver(system: sp.spmatrix):
+    """A solve function for a symmetric positive definite sparse system: SuperLU in symmetric
+    mode (ordering on A + A^T, diagonal pivots), about half the time of its general default."""
+    lu = splu(system.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+              options={"SymmetricMode": True})
+    return lu.solve
 
 
 def _pseudonormal_side(mesh, points: np.ndarray, closest: np.ndarray,
@@ -187,46 +195,59 @@ def _pseudonormal_side(mesh, points: np.ndarray, closest: np.ndarray,
     return np.where(side < 0, -1.0, 1.0)
 
 
-_BODY_MESH: list = []  # one entry: (vertices, faces, trimesh.Trimesh) of the last body asked for
+class BodySurface:
+    """The rest body for closest-point queries: libigl's AABB tree (exact closest points, about
+    ten times faster than trimesh's rtree search, which also missed the closest point on the
+    body's smallest triangles by up to 0.1 mm) and the trimesh view that gives the normals for
+    the inside/outside test."""
+
+    def __init__(self, body: RestBody) -> None:
+        import igl
+        import trimesh
+
+        self.vertices = np.ascontiguousarray(body.vertices, dtype=np.float64)
+        self.faces = np.ascontiguousarray(body.faces, dtype=np.int64)
+        self.mesh = trimesh.Trimesh(self.vertices, self.faces, process=False)
+        self.tree = igl.AABB()
+        self.tree.init(self.vertices, self.faces)
+
+    def is_of(self, body: RestBody) -> bool:
+        return (np.array_equal(self.vertices, body.vertices)
+                and np.array_equal(self.faces, body.faces))
+
+    def signed_distance(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(signed distance, positive outside; the face normal at the closest point)"""
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        squared, tri, closest = self.tree.squared_distance(self.vertices, self.faces, points)
+        side = _pseudonormal_side(self.mesh, points, closest, tri)
+        return side * np.sqrt(squared), self.mesh.face_normals[tri]
 
 
-def body_mesh(body: RestBody):
-    """The body as a trimesh.Trimesh, reused while the same body is asked for: an outfit's
-    garments are all pushed clear of one subject, and building the mesh's spatial index costs
-    about 0.15 s a time."""
-    import trimesh
-
-    if _BODY_MESH:
-        vertices, faces, mesh = _BODY_MESH[0]
-        if np.array_equal(vertices, body.vertices) and np.array_equal(faces, body.faces):
-            return mesh
-    mesh = trimesh.Trimesh(body.vertices, body.faces, process=False)
-    _BODY_MESH[:] = [(np.array(body.vertices, copy=True), np.array(body.faces, copy=True), mesh)]
-    return mesh
+_LAST_SURFACE: list[BodySurface] = []  # one entry: the last body asked for
 
 
-def body_signed_distance(points: np.ndarray, body: RestBody,
-                         mesh=None) -> tuple[np.ndarray, np.ndarray]:
-    """Signed distance to the (watertight) rest body and the surface normal at the closest
-    point. `mesh`: the body as a trimesh.Trimesh, when the caller asks many times (its spatial
-    index is built once)."""
-    import trimesh
+def body_surface(body: RestBody) -> BodySurface:
+    """The body's BodySurface, reused while the same body is asked for: an outfit's garments are
+    all pushed clear of one subject."""
+    if not (_LAST_SURFACE and _LAST_SURFACE[0].is_of(body)):
+        _LAST_SURFACE[:] = [BodySurface(body)]
+    return _LAST_SURFACE[0]
 
-    if mesh is None:
-        mesh = body_mesh(body)
-    closest, dist, tri = trimesh.proximity.closest_point(mesh, points)
-    return _pseudonormal_side(mesh, points, closest, tri) * dist, mesh.face_normals[tri]
+
+def body_signed_distance(points: np.ndarray, body: RestBody) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distance to the (watertight) rest body, positive outside, and the surface normal at
+    the closest point."""
+    return body_surface(body).signed_distance(points)
 
 
 class _ClearanceTracker:
     """Signed distances of moving points, queried again only where they could matter: the
     distance to the body changes by at most how far a point moved, so a point whose last known
-    distance minus its movement since is still beyond `reach` needs no new query (the closest-
-    point query is most of an outfit's set-up time)."""
+    distance minus its movement since is still beyond `reach` needs no new query."""
 
     def __init__(self, points: np.ndarray, body: RestBody, reach: float) -> None:
-        self.mesh = body_mesh(body)
-        self.body, self.reach = body, reach
+        self.surface = body_surface(body)
+        self.reach = reach
         self.sd = np.full(len(points), -np.inf)  # unknown: query everything the first time
         self.normals = np.zeros((len(points), 3))
         self.moved = np.zeros(len(points))
@@ -235,8 +256,7 @@ class _ClearanceTracker:
         """(a lower bound of the signed distance, exact where it is below `reach`; normals)"""
         ask = np.flatnonzero(self.sd - self.moved < self.reach)
         if len(ask):
-            self.sd[ask], self.normals[ask] = body_signed_distance(points[ask], self.body,
-                                                                   self.mesh)
+            self.sd[ask], self.normals[ask] = self.surface.signed_distance(points[ask])
             self.moved[ask] = 0.0
         return self.sd - self.moved, self.normals
 
