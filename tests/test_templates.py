@@ -331,6 +331,18 @@ def test_cli_check(shipped, tmp_path):
     result = runner.invoke(templates, ["check", "--no-body", str(good), str(obj)])
     assert result.exit_code == 1
     assert "top.obj: OK" in result.output and "looks like centimetres" in result.output
+    # A folder stands for every template under it (`datagen templates check templates/*`), each
+    # checked once even when the folder and a file in it are both named.
+    (tmp_path / "sub").mkdir()
+    _copy(TEMPLATES / "female" / "top", tmp_path / "sub", "top")
+    result = runner.invoke(templates, ["check", "--no-body", str(tmp_path), str(obj)])
+    assert result.exit_code == 1
+    assert result.output.count("top.obj: OK") == 1 and result.output.count("centimetres") == 1
+    assert "1 of 2 templates have problems" in result.output
+    (tmp_path / "empty").mkdir()
+    result = runner.invoke(templates, ["check", str(tmp_path / "empty")])
+    assert result.exit_code == 2 and "empty" in result.output
+    assert "expected a folder holding template .obj files" in result.output
 
 
 def test_low_resolution_build(rest_bodies):

@@ -88,17 +88,23 @@ def build(resolution: float, out: str, only: tuple[str, ...], genders: tuple[str
     help="Skip the clearance check.",
 )
 def check(paths: tuple[str, ...], body_obj: str | None, no_body: bool) -> None:
-    """Check templates (each PATH an .obj, a .json or their common stem): topology, element
-    quality, self-intersections, the sidecar's loops/regions/axes/rows, and clearance from the
-    rest body the sidecar names (or --body). Prints OK or every problem; exits non-zero on any
-    problem."""
+    """Check templates (each PATH an .obj, a .json, their common stem, or a folder: every .obj
+    under it): topology, element quality, self-intersections, the sidecar's loops/regions/axes/
+    rows, and clearance from the rest body the sidecar names (or --body). Prints OK or every
+    problem; exits non-zero on any problem."""
     from datagen.garment.template import (
         BodyProximity,
         check_template,
+        expand_template_paths,
         load_sidecar,
         read_obj,
-        template_paths,
     )
+
+    try:
+        targets = expand_template_paths(paths)
+    except DatagenError as exc:
+        click.echo(f"error: {exc}", err=True)
+        sys.exit(2)
 
     bodies: dict[str, BodyProximity] = {}
     explicit = None
@@ -110,8 +116,7 @@ def check(paths: tuple[str, ...], body_obj: str | None, no_body: bool) -> None:
             sys.exit(2)
         explicit = BodyProximity(bv, bf)
     failed = 0
-    for path in paths:
-        obj_path, json_path = template_paths(path)
+    for obj_path, json_path in targets:
         body = explicit
         note = ""
         if not no_body and explicit is None:
@@ -136,7 +141,7 @@ def check(paths: tuple[str, ...], body_obj: str | None, no_body: bool) -> None:
         else:
             click.echo(f"{obj_path}: OK{note}")
     if failed:
-        click.echo(f"{failed} of {len(paths)} templates have problems", err=True)
+        click.echo(f"{failed} of {len(targets)} templates have problems", err=True)
         sys.exit(1)
 
 

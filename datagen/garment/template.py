@@ -13,6 +13,7 @@ This module knows no body model: clearance is checked against body arrays that t
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -134,6 +135,23 @@ def template_paths(path: str | Path) -> tuple[Path, Path]:
     else:
         stem = path
     return stem.with_suffix(".obj"), stem.with_suffix(".json")
+
+
+def expand_template_paths(paths: Iterable[str | Path]) -> list[tuple[Path, Path]]:
+    """(obj, json) of every template the paths name, in order, each once: a file or stem names
+    one (checked later, so a missing one is reported as such), a folder every .obj under it
+    (`datagen templates check templates/*` checks both genders' folders)."""
+    out: list[tuple[Path, Path]] = []
+    for path in map(Path, paths):
+        if path.is_dir():
+            found = sorted(path.rglob("*.obj"))
+            if not found:
+                raise InputError(path, None, "a folder holding template .obj files",
+                                 "no .obj file in it")
+            out += [template_paths(p) for p in found]
+        else:
+            out.append(template_paths(path))
+    return list(dict.fromkeys(out))
 
 
 def read_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
