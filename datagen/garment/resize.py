@@ -205,8 +205,9 @@ class BodySurface:
         import igl
         import trimesh
 
-        self.vertices = np.ascontiguousarray(body.vertices, dtype=np.float64)
-        self.faces = np.ascontiguousarray(body.faces, dtype=np.int64)
+        # Copies: the cache compares them with the next body asked for.
+        self.vertices = np.array(body.vertices, dtype=np.float64, order="C", copy=True)
+        self.faces = np.array(body.faces, dtype=np.int64, order="C", copy=True)
         self.mesh = trimesh.Trimesh(self.vertices, self.faces, process=False)
         self.tree = igl.AABB()
         self.tree.init(self.vertices, self.faces)
