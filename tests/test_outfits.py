@@ -78,12 +78,13 @@ def test_hundred_outfits_clear_the_rest_body(fitted):
 
 def test_body_signed_distance_agrees_with_an_independent_query(body_model):
     """The clearance measure (libigl's AABB closest points, pseudonormal side) against trimesh's
-    closest points and its ray-cast inside test, 3000 points within 2 cm of a real rest body
-    above the feet (no garment reaches them; the body mesh's toes overlap, which no side test by
-    the closest point can see):
-    never farther than the surface point trimesh found, at most 0.2 mm nearer (trimesh misses
-    the closest point on the body's smallest triangles by up to 0.1 mm), the same side of the
-    skin wherever the point is more than 0.2 mm from it."""
+    closest points and its ray-cast inside test, on 3000 points within 2 cm of a real rest body.
+
+    Each distance is never farther than the surface point trimesh found and at most 0.2 mm
+    nearer (trimesh misses the closest point on the body's smallest triangles by up to 0.1 mm),
+    and the side of the skin agrees wherever the point is more than 0.2 mm from it. Points are
+    drawn above the feet: no garment reaches them, and the body mesh's toes overlap, which no
+    side test by the closest point can see."""
     import trimesh
 
     rest = body_model.rest_body("female", np.full(len(SHAPE_NAMES), 0.5))
