@@ -138,6 +138,46 @@ def test_cloth_dropped_on_a_sphere_stays_outside():
     assert result.qa["deep_share"].max() == 0.0
 
 
+def _trampoline_centre_z(outer: bool, inner_fabric: str = "cotton",
+                         fabrics: dict | None = None) -> tuple[float, float | None]:
+    """A 0.4 m cotton sheet pinned along its four edges, after 2 s: the height of its centre,
+    and of the centre of a 0.3 m sheet (layer 1) dropped on it from 1 cm when `outer`."""
+    n = 12
+    inner = grid_sheet(n, 0.4, 0.5, name="inner", fabric=inner_fabric)
+    rows = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    inner.pinned = np.unique(np.concatenate([rows[0], rows[-1], rows[:, 0], rows[:, -1]]))
+    garments = [inner]
+    if outer:
+        top = grid_sheet(10, 0.3, 0.51, name="outer")
+        top.layer = 1
+        garments.append(top)
+    result = simulate(garments, None, SimOptions(settle_seconds=0.0, frames=60,
+                                                 fabrics=fabrics or {}))
+    assert ("garment_collision" in result.report["effects"]) == outer
+    inner_z = float(result.vertices["inner"][-1, rows[n // 2, n // 2], 2])
+    outer_z = float(result.vertices["outer"][-1, 60, 2]) if outer else None
+    return inner_z, outer_z
+
+
+def test_an_outer_garment_weighs_on_the_inner_one():
+    """Layered garments push each other: a sheet lying on a pinned trampoline makes it sag about
+    as much as the same mass spread over the trampoline itself. (With the inner garment a
+    surface that the outer one is pushed by but does not push, the sag did not change.)"""
+    alone, _ = _trampoline_centre_z(outer=False)
+    loaded, on_top = _trampoline_centre_z(outer=True)
+    heavy = replace(FABRICS["cotton"], name="heavy",
+                    density=FABRICS["cotton"].density * (1.0 + 0.3**2 / 0.4**2))
+    heavier, _ = _trampoline_centre_z(outer=False, inner_fabric="heavy",
+                                      fabrics={"heavy": heavy})
+    # 24.2 mm of sag alone, 27.7 with the sheet on it, 27.9 with its mass in the trampoline.
+    expected = alone - heavier
+    assert expected > 2e-3
+    assert 0.75 * expected < alone - loaded < 1.25 * expected
+    # ...and the outer sheet rests on it, one thickness above.
+    thickness = FABRICS["cotton"].thickness
+    assert abs((on_top - loaded) - thickness) < 0.5e-3
+
+
 def test_pinned_vertices_follow_their_targets():
     from datagen.sim.scenes import cylinder_mesh
 

@@ -226,17 +226,24 @@ class ClothSolver:
         if self.use_layers:
             self.inner_vertices = np.concatenate(
                 [np.arange(*model.garment_ranges[g]) for g in inner])
-            remap = -np.ones(self.n, np.int64)
-            remap[self.inner_vertices] = np.arange(len(self.inner_vertices))
+            # The collider indexes the cloth's own vertices: contact reads the inner garment's
+            # current positions straight from the solver's arrays.
             faces = np.concatenate([model.faces[slice(*model.face_ranges[g])] for g in inner])
-            self.layer_collider = BodyCollider(remap[faces].astype(np.int32),
-                                               np.ones(len(faces), bool),
-                                               len(self.inner_vertices))
+            self.layer_collider = BodyCollider(faces.astype(np.int32),
+                                               np.ones(len(faces), bool), self.n)
             for g in outer:
                 lo, hi = model.garment_ranges[g]
                 layer_w[lo:hi] = 1.0
             layer_w[model.pinned if self.effects.pins else []] = 0.0
         self.layer_w = _nd(REAL, layer_w)
+        # The inner garment's vertex normals at its current positions, and the outer
+        # garments' push back on it (kernels.collide_layer_one).
+        n_layer = self.n if self.use_layers else 1
+        self.layer_nrm = ti.ndarray(VEC3, n_layer)
+        self.layer_react = ti.ndarray(VEC4, n_layer)
+        self.layer_react.fill(0.0)
+        self.layer_count = ti.ndarray(REAL, n_layer)  # pushes each took in the last substep
+        self.layer_count.fill(0.0)
         self.layer_tri = _nd(ti.i32, -np.ones(self.n, np.int32))
         self.layer_guard = _nd(K.GUARD, fresh_guards(self.n))
         self.layer_odo = 0.0  # metres the inner garment's fastest vertex has travelled
@@ -261,7 +268,10 @@ class ClothSolver:
             inner1[tracked] = inner0[tracked] + moved
         self.layer_travel = float(np.linalg.norm(inner1 - inner0, axis=1).max())
         c = self.layer_collider
-        c.set_frames(inner0, inner1)
+        path0, path1 = x.copy(), x.copy()  # only the inner garment's entries are read
+        path0[self.inner_vertices] = inner0
+        path1[self.inner_vertices] = inner1
+        c.set_frames(path0, path1)
         self._run("garment_collision", c.nearest, self.x, self.layer_w, self.layer_tri, 0.0,
                   False, self.layer_guard, self.layer_odo)
 
@@ -276,10 +286,12 @@ class ClothSolver:
             c = self.layer_collider
             self._run("garment_collision", c.nearest, self.x, self.layer_w, self.layer_tri, s1,
                       True, self.layer_guard, self.layer_odo + s1 * self.layer_travel)
-            self._run("garment_collision", K.collide_body, self.x, self.xp, self.layer_w,
-                      self.layer_tri, c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, s0, s1,
+            self._run("garment_collision", K.layer_normals, self.x, c.faces, self.layer_nrm)
+            self._run("garment_collision", K.collide_layers, self.x, self.xp, self.w,
+                      self.layer_w, self.layer_tri, c.faces, c.fadj, self.layer_nrm,
                       self.thickness, self.friction, self.settings.recover_speed * h,
-                      2.0 * c.cell, self.contact_n, self.contact_v, h, self.effects.friction)
+                      2.0 * c.cell, self.contact_n, self.contact_v, h, self.layer_react,
+                      self.layer_count, self.effects.friction)
         if self.use_self:
             inv = 1.0 / self.self_radius
             self._run("self_collision", K.self_collide, self.x, self.w, self.s_owner,
@@ -516,7 +528,7 @@ class XPBDSolver(ClothSolver):
             c.starts, c.items, self.guard, c.relative_travel,
             self.s_owner, self.s_rest, self.s_counts, self.s_starts, self.s_items,
             self.layer_w, self.layer_tri, self.layer_guard, lc.relative_travel,
-            lc.faces, lc.fadj, lc.b0, lc.b1, lc.n0, lc.n1,
+            lc.faces, lc.fadj, lc.b0, lc.b1, self.layer_nrm, self.layer_react, self.layer_count,
             lc.starts, lc.items,
             self.P, self.Q,
             e.gravity, e.air_drag or e.wind, use_collision, e.friction, self.use_layers,
