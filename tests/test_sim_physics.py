@@ -336,14 +336,13 @@ def test_frames_over_the_strain_bound_are_redone_with_more_substeps(monkeypatch)
                              strain_refinements=refinements)
         return simulate([sheet], track, options)
 
-    plain, refined = run(0.01, 0), run(0.01, 2)
+    plain, refined = run(0.02, 0), run(0.02, 2)
     assert plain.report["strain_refinements"] == 0 and plain.report["frame_substeps_max"] == 10
     assert refined.report["frame_substeps_max"] in (20, 40)
     assert refined.report["strain_refinements"] > 0
-    # The plain run ends over the bound, the refined one within it (measured: 0.0115 and 0.0097.
-    # With at most 4 strain-limit sweeps after contact a 0.02 bound did: 0.025 and 0.019; with
-    # 16 the plain run ends within that one, 0.0193.)
-    assert refined.qa["strain_p999"][-1] < 0.01 < plain.qa["strain_p999"][-1]
+    # The plain run ends over the bound, the refined one within it (measured: 0.025 and 0.019;
+    # 0.060 and 0.020 before the strain limit had the last word over friction).
+    assert refined.qa["strain_p999"][-1] < 0.02 < plain.qa["strain_p999"][-1]
     # A sheet pinned along two lines on a cylinder that widens by 60 %: the band between the
     # pins must stretch, whatever the substeps. Once a frame's 4x run does not help, the
     # refinement rests, so most over-strained frames are not redone. (Without tethers: they
