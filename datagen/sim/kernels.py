@@ -25,11 +25,8 @@ I4 = ti.types.ndarray(dtype=ti.math.ivec4, ndim=1)
 
 WALK_STEPS = 8  # most triangles a cloth vertex's walk to its closest body triangle visits
 # The strain limit's sweeps after contact (limit_after_contact_one): until no spring is more
-# than the tolerance (relative) past its limit, at most this many. Fabric that must slide along
-# a bending knee is a long chain for Gauss-Seidel: capped at 4, tight trouser knees stayed past
-# the limit (leather_trousers 0.24 %, heavy_body 0.14 % of edges past the bound; 0.09 % and a
-# pass at 16, and fewer frames redone with more substeps, so the cases ran faster).
-AFTER_CONTACT_SWEEPS = 16
+# than the tolerance (relative) past its limit, at most this many.
+AFTER_CONTACT_SWEEPS = 4
 AFTER_CONTACT_TOLERANCE = 1e-3
 
 
