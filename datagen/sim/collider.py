@@ -54,9 +54,12 @@ class BodyCollider:
     """Holds the body's frames on the device; one instance per scene."""
 
     def __init__(
-        self, faces: np.ndarray, face_mask: np.ndarray, n_vertices: int, cell: float = 0.025
+        self, faces: np.ndarray, face_mask: np.ndarray, n_vertices: int, cell: float = 0.025,
+        normals: bool = True,
     ) -> None:
         init_taichi()
+        # A layer collider reads its normals from the cloth each substep: none per frame.
+        self.normals = normals
         self.faces_np = np.asarray(faces, dtype=np.int32)
         self.mask_np = np.asarray(face_mask, dtype=bool)
         self.n_vertices = n_vertices
@@ -102,7 +105,8 @@ class BodyCollider:
             self.n0, self.n1 = self.n1, self.n0
         else:
             self.b0.from_numpy(v0)
-            self.n0.from_numpy(vertex_normals(v0, self.faces_np) if nrm0 is None else nrm0)
+            if self.normals:
+                self.n0.from_numpy(vertex_normals(v0, self.faces_np) if nrm0 is None else nrm0)
         self.v0_np, self.v1_np = v0, v1
         motion = (v1 - v0).astype(np.float64)
         self.travel_np = np.linalg.norm(motion, axis=1)
@@ -117,7 +121,8 @@ class BodyCollider:
             self.n1.copy_from(self.n0)
         else:
             self.b1.from_numpy(v1)
-            self.n1.from_numpy(vertex_normals(v1, self.faces_np) if nrm1 is None else nrm1)
+            if self.normals:
+                self.n1.from_numpy(vertex_normals(v1, self.faces_np) if nrm1 is None else nrm1)
         self._build_grid()
 
     def _build_grid(self) -> None:

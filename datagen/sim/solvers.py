@@ -230,7 +230,7 @@ class ClothSolver:
             # current positions straight from the solver's arrays.
             faces = np.concatenate([model.faces[slice(*model.face_ranges[g])] for g in inner])
             self.layer_collider = BodyCollider(faces.astype(np.int32),
-                                               np.ones(len(faces), bool), self.n)
+                                               np.ones(len(faces), bool), self.n, normals=False)
             for g in outer:
                 lo, hi = model.garment_ranges[g]
                 layer_w[lo:hi] = 1.0
