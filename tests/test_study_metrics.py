@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import click
 import numpy as np
 import pytest
 
@@ -126,6 +127,73 @@ def test_report_only_names_the_parts_not_measured_yet_or_measured_earlier(tmp_pa
     path.write_text(json.dumps(part))
     with pytest.raises(click.UsageError, match="no finished part"):
         run_study(tmp_path, blender=False, measure=False, log=lambda _: None)
+
+
+def test_a_part_whose_scene_the_simulator_still_runs_the_same_is_carried_over(
+        tmp_path, monkeypatch):
+    """A part measured by other simulator sources stands for today's simulator when its
+    behavioural fingerprint is today's (the page lists it as carried over); when the
+    fingerprint differs it reads as measured earlier. The fingerprint is replaced here: this
+    is about the bookkeeping (the next test runs the real one)."""
+    import json
+    from dataclasses import asdict
+
+    from datagen.study import fingerprint
+    from datagen.study.sweep import Row, _part_path, _plan_signature, full_plan, run_study
+
+    plan = full_plan()
+    (scene, resolution), fabric = plan.scenes[0], plan.fabrics[0]
+    row = Row(scene, fabric, resolution, "xpbd", 20, 4, 4225, 1.0, 1.0, 9.0, 3.0, 9.0, 0.1, 0.0)
+    signature = json.loads(json.dumps(_plan_signature(plan, scene)))
+    part = {"key": f"{scene}/{fabric}", "signature": {**signature, "simulator": "0" * 16},
+            "behaviour": "1" * 16, "ladder": [{"substeps": 40, "seconds": 50.0}],
+            "predictable_frames": 9, "blender_vs_ours_mm": None, "blender": "absent",
+            "minutes": 30.0, "rows": [asdict(row)]}
+    path = _part_path(tmp_path, scene, resolution, fabric)
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps(part))
+    asked = []
+
+    def today(scene_name, res, fab, p):
+        asked.append((scene_name, res, fab))
+        return "1" * 16
+
+    monkeypatch.setattr(fingerprint, "part_fingerprint", today)
+    summary, rows = run_study(tmp_path, blender=False, measure=False, log=lambda _: None)
+    assert rows == [row] and asked == [(scene, resolution, fabric)]
+    assert summary["carried_over_parts"] == [part["key"]]
+    assert summary["earlier_simulator_parts"] == []
+    monkeypatch.setattr(fingerprint, "part_fingerprint", lambda *a: "2" * 16)
+    summary, rows = run_study(tmp_path, blender=False, measure=False, log=lambda _: None)
+    assert summary["carried_over_parts"] == [] and summary["earlier_simulator_parts"] == [
+        part["key"]]
+    # measured under another plan, a part is not carried over whatever its fingerprint
+    part["signature"]["frames"] = 999
+    path.write_text(json.dumps(part))
+    monkeypatch.setattr(fingerprint, "part_fingerprint", today)
+    with pytest.raises(click.UsageError, match="no finished part"):
+        run_study(tmp_path, blender=False, measure=False, log=lambda _: None)
+
+
+def test_the_fingerprint_repeats_and_sees_a_change_in_what_the_simulator_does():
+    """The coarse sheet at the quick plan's cheapest settings of each solver: the same
+    simulator gives the same digest twice; the same sheet in denim (standing in for a change
+    to the simulator) gives another."""
+    from dataclasses import replace
+
+    from datagen.study.fingerprint import fingerprint_frames, scene_fingerprint
+    from datagen.study.scenes import build_scene
+    from datagen.study.sweep import quick_plan
+
+    configs = quick_plan().configs
+    frames = fingerprint_frames("sheet_sphere")
+    scene = build_scene("sheet_sphere", "cotton", "coarse", frames=frames)
+    first = scene_fingerprint(scene, configs)
+    assert scene_fingerprint(build_scene("sheet_sphere", "cotton", "coarse", frames=frames),
+                             configs) == first
+    assert len(first) == 16
+    scene.garments = [replace(g, fabric="denim") for g in scene.garments]
+    assert scene_fingerprint(scene, configs) != first
 
 
 def test_a_failing_finer_rung_ends_the_reference_ladder(monkeypatch):

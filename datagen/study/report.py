@@ -243,6 +243,13 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
             f"**Measured with an earlier version of the simulator: "
             f"{', '.join(summary['earlier_simulator_parts'])}.** Their figures (errors and "
             "times) stand for that version; `--part` measures them again with this one."]),
+        *([] if not summary.get("carried_over_parts") else [
+            "",
+            f"**Carried over: {', '.join(summary['carried_over_parts'])}** were measured "
+            "before the simulator's latest source changes, which leave their scenes' "
+            "trajectories bit-identical (`datagen.study.fingerprint`: every solver series at "
+            "its cheapest settings and the reference's first rung, over the scene's first "
+            "frames), so they stand for today's simulator."]),
         "",
         "## The scenes",
         "",

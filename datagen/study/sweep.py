@@ -23,7 +23,9 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 
 import click
@@ -250,6 +252,17 @@ def reusable(part: dict, signature: dict, have_blender: bool) -> bool:
     return part["signature"] == signature and (part["blender"] != "absent" or not have_blender)
 
 
+def same_behaviour(part: dict, signature: dict, have_blender: bool,
+                   fingerprint: Callable[[], str]) -> bool:
+    """A saved part measured under this plan by other simulator sources that still behave the
+    same on its scene (study.fingerprint): it stands for today's simulator. `fingerprint`
+    computes today's, only when the rest matches."""
+    return ("behaviour" in part and earlier_simulator(part, signature)
+            and reusable(part, {**signature, "simulator": part["signature"]["simulator"]},
+                         have_blender)
+            and part["behaviour"] == fingerprint())
+
+
 def earlier_simulator(part: dict, signature: dict) -> bool:
     """A saved part measured under this plan by another version of the simulator."""
     return part["signature"]["simulator"] != signature["simulator"] and (
@@ -263,12 +276,14 @@ def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_ble
     Blender's series, all timed in this one run."""
     from datagen.errors import RejectedSequence
     from datagen.study import blender as peer
+    from datagen.study.fingerprint import part_fingerprint
     from datagen.study.run import run_ours
     from datagen.study.scenes import build_scene
 
     t_start = time.time()
     rows: list[Row] = []
     key = f"{scene_name}/{fabric}"
+    behaviour = part_fingerprint(scene_name, resolution, fabric, plan)
     log(f"{key}: reference")
     scene = build_scene(scene_name, fabric, resolution)
     horizon = scene.horizon + 1
@@ -313,7 +328,8 @@ def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_ble
                              run.seconds_per_simulated_second, {},
                              f"against Blender quality {plan.blender_converged}", pred))
             log(f"  blender q{q}: {asdict(rows[-1])}")
-    return {"key": key, "signature": _plan_signature(plan, scene_name), "ladder": ladder,
+    return {"key": key, "signature": _plan_signature(plan, scene_name), "behaviour": behaviour,
+            "ladder": ladder,
             "predictable_frames": pred, "blender_vs_ours_mm": gap,
             "blender": peer.blender_version() if have_blender else "absent",
             "minutes": (time.time() - t_start) / 60, "rows": [asdict(r) for r in rows]}
@@ -341,7 +357,9 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
     if only and not only <= keys:
         raise click.UsageError(f"--part {', '.join(sorted(only - keys))}: not a part of the "
                                f"{'quick' if quick else 'full'} plan ({', '.join(sorted(keys))})")
-    parts, missing, earlier = [], [], []
+    from datagen.study.fingerprint import part_fingerprint
+
+    parts, missing, earlier, carried = [], [], [], []
     for scene_name, resolution in plan.scenes:
         for fabric in plan.fabrics:
             key = f"{scene_name}/{fabric}"
@@ -353,6 +371,13 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
                 if reusable(part, signature, have_blender):
                     log(f"{key}: reusing {path} ({part['minutes']:.0f} min)")
                     parts.append(part)
+                    continue
+                if same_behaviour(part, signature, have_blender, partial(
+                        part_fingerprint, scene_name, resolution, fabric, plan)):
+                    log(f"{key}: reusing {path}: measured with simulator sources "
+                        f"{part['signature']['simulator']}, which behave as today's on it")
+                    parts.append(part)
+                    carried.append(key)
                     continue
                 if not wanted and earlier_simulator(part, signature):
                     # Reported, and marked: its figures stand for the simulator it measured.
@@ -373,6 +398,7 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
     summary = {
         "missing_parts": missing,
         "earlier_simulator_parts": earlier,
+        "carried_over_parts": carried,
         "quick": quick, "minutes": sum(p["minutes"] for p in parts),
         "ladders": {p["key"]: p["ladder"] for p in parts},
         "predictable_frames": {p["key"]: p["predictable_frames"] for p in parts},

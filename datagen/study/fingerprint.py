@@ -1,0 +1,74 @@
+"""What the simulator does on a study part, as a digest: its behavioural fingerprint.
+
+A part of the full study takes up to an hour and a half on 2 cores, so the whole study spans
+sessions. A part is keyed by a digest of the simulator's sources (`cache.source_digest`), and
+any edit under `datagen/sim` makes it stale, even one that cannot reach the part's scene (a
+kernel compiled only for layered outfits). The fingerprint says whether the simulator still
+does the same thing on that scene: short runs of every solver series the plan measures, and of
+the float64 reference, from the scene's own start; their trajectories' bytes are hashed. A part
+whose fingerprint equals today's is carried over as measured by today's simulator.
+
+It is evidence, not proof: a change that leaves these few frames bit-identical but changes
+later frames, or only other settings, would slip through, so the page names the parts carried
+over by fingerprint. The digest depends on this machine's floating point (another CPU may
+differ), which only ever reads as a change.
+"""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+
+# Frames per run: enough for contact, the strain limit and friction to act (the body scenes'
+# garments start on the body; the sheet reaches its sphere at about 0.25 s, frame 8), few
+# enough that a part's fingerprint costs about a minute.
+FINGERPRINT_FRAMES = {"sheet_sphere": 12}
+BODY_FRAMES = 3
+
+
+def fingerprint_frames(scene_name: str) -> int:
+    return FINGERPRINT_FRAMES.get(scene_name, BODY_FRAMES)
+
+
+def scene_fingerprint(scene, configs: dict[str, list[tuple[int, int]]]) -> str:
+    """Digest of the trajectories of each solver at its first (cheapest) configuration over
+    the scene's frames (build it with fingerprint_frames), run in this process (float32)."""
+    from datagen.errors import RejectedSequence
+    from datagen.study.run import run_ours
+
+    h = hashlib.sha256()
+    for solver, settings in sorted(configs.items()):
+        substeps, iterations = settings[0]
+        h.update(f"{solver} {substeps}x{iterations}".encode())
+        try:
+            run = run_ours(scene, solver, substeps, iterations)
+        except RejectedSequence as exc:  # a rejection is behaviour too
+            h.update(str(exc).encode())
+            continue
+        h.update(np.ascontiguousarray(run.positions, np.float64).tobytes())
+    return h.hexdigest()[:16]
+
+
+def part_fingerprint(scene_name: str, resolution: str, fabric: str, plan) -> str:
+    """The fingerprint of one part of `plan` (a sweep.Plan): its scene's solver series and
+    the first rung of its float64 reference ladder. Cached per source digest: computed once
+    for each version of the simulator."""
+    from datagen.study.cache import cached
+    from datagen.study.scenes import build_scene
+    from datagen.study.sweep import run_worker
+
+    def compute() -> dict[str, np.ndarray]:
+        frames = fingerprint_frames(scene_name)
+        ours = scene_fingerprint(build_scene(scene_name, fabric, resolution, frames=frames),
+                                 plan.configs)
+        ref = run_worker(scene_name, fabric, resolution, "implicit", plan.start_for(scene_name),
+                         20, fp64=True, frames=frames)["positions"]
+        h = hashlib.sha256(ours.encode())
+        h.update(np.ascontiguousarray(ref, np.float64).tobytes())
+        return {"digest": np.frombuffer(h.hexdigest()[:16].encode(), np.uint8)}
+
+    key = {"fingerprint": 1, "scene": scene_name, "resolution": resolution, "fabric": fabric,
+           "configs": {k: [list(c[:1][0])] for k, c in plan.configs.items()},
+           "reference_start": plan.start_for(scene_name), "frames": fingerprint_frames(scene_name)}
+    return bytes(cached(key, compute)["digest"]).decode()
