@@ -69,6 +69,6 @@ def part_fingerprint(scene_name: str, resolution: str, fabric: str, plan) -> str
         return {"digest": np.frombuffer(h.hexdigest()[:16].encode(), np.uint8)}
 
     key = {"fingerprint": 1, "scene": scene_name, "resolution": resolution, "fabric": fabric,
-           "configs": {k: [list(c[:1][0])] for k, c in plan.configs.items()},
+           "configs": {solver: list(c[0]) for solver, c in plan.configs.items()},
            "reference_start": plan.start_for(scene_name), "frames": fingerprint_frames(scene_name)}
     return bytes(cached(key, compute)["digest"]).decode()
