@@ -88,26 +88,38 @@ def test_a_stopped_study_keeps_its_finished_parts(tmp_path):
     assert not reusable(part, signature, have_blender=True)  # Blender's series is missing
 
 
-def test_report_only_names_the_parts_not_measured_yet_or_measured_earlier(tmp_path):
+def _one_finished_part(out):
+    """The full plan's first part, saved under `out` as a run would (one row): (part, path, row)."""
     import json
     from dataclasses import asdict
 
-    import click
-
-    from datagen.study.sweep import Row, _part_path, _plan_signature, full_plan, run_study
+    from datagen.study.sweep import Row, _part_path, _plan_signature, full_plan
 
     plan = full_plan()
-    with pytest.raises(click.UsageError, match="no finished part"):
-        run_study(tmp_path, blender=False, measure=False, log=lambda _: None)
     (scene, resolution), fabric = plan.scenes[0], plan.fabrics[0]
     row = Row(scene, fabric, resolution, "xpbd", 20, 4, 4225, 1.0, 1.0, 9.0, 3.0, 9.0, 0.1, 0.0)
     part = {"key": f"{scene}/{fabric}",
             "signature": json.loads(json.dumps(_plan_signature(plan, scene))),
-            "ladder": [{"substeps": 40, "seconds": 50.0}], "predictable_frames": 9,
-            "blender_vs_ours_mm": None, "blender": "absent", "minutes": 30.0,
-            "rows": [asdict(row)]}
-    path = _part_path(tmp_path, scene, resolution, fabric)
-    path.write_text(json.dumps(part))  # the first call made the parts folder
+            "ladder": [{"substeps": 40, "seconds": 50.0, "predictable_frames": 9}],
+            "predictable_frames": 9, "blender_vs_ours_mm": None, "blender": "absent",
+            "minutes": 30.0, "rows": [asdict(row)]}
+    path = _part_path(out, scene, resolution, fabric)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(part))
+    return part, path, row
+
+
+def test_report_only_names_the_parts_not_measured_yet_or_measured_earlier(tmp_path):
+    import json
+
+    import click
+
+    from datagen.study.sweep import full_plan, run_study
+
+    plan = full_plan()
+    with pytest.raises(click.UsageError, match="no finished part"):
+        run_study(tmp_path, blender=False, measure=False, log=lambda _: None)
+    part, path, row = _one_finished_part(tmp_path)
     summary, rows = run_study(tmp_path, blender=False, measure=False, log=lambda _: None)
     assert rows == [row]
     expected = [f"{s}/{f}" for s, _ in plan.scenes for f in plan.fabrics][1:]
@@ -364,3 +376,21 @@ def test_equal_error_speed_pairs_each_blender_run_with_our_cheapest_as_close():
 
     line = comparison(rows, {"default": (40, 8)})[0]
     assert "**3.3x** faster" in line and "xpbd 20x4 (4.00 mm at 1.00 s), 10.0x faster" in line
+
+
+def test_a_regenerated_page_keeps_the_hand_written_state_of_the_study(tmp_path):
+    """The reading that rows cannot give lives in OUT/state.md and survives --report-only."""
+    from datagen.study.report import STATE_NOTE
+    from datagen.study.sweep import main_cli
+
+    _one_finished_part(tmp_path)
+    doc = tmp_path / "page.md"
+    main_cli(str(tmp_path), quick=False, blender=False, doc=str(doc), command="test",
+             measure=False)
+    assert "State of the study" not in doc.read_text()
+    (tmp_path / STATE_NOTE).write_text("**State of the study.** Measured by hand.\n")
+    main_cli(str(tmp_path), quick=False, blender=False, doc=str(doc), command="test",
+             measure=False)
+    page = doc.read_text()
+    assert page.index("not measured yet") < page.index("**State of the study.** Measured by hand.")
+    assert page.index("Measured by hand.") < page.index("## The scenes")

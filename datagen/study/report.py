@@ -1,5 +1,9 @@
 """docs/accuracy-vs-time.md from a study's rows and summary: the reference's convergence, the
-table, the plot, the presets with their figures, and Blender's series beside ours."""
+table, the plot, the presets with their figures, and Blender's series beside ours.
+
+The reading that rows cannot give (which parts were measured when, what changed since, leads
+found outside the table) is written by hand in OUT/state.md (STATE_NOTE) and placed before the
+scenes, so that a regenerated page keeps it."""
 
 from __future__ import annotations
 
@@ -11,6 +15,8 @@ import numpy as np
 
 from datagen.study.scenes import START_SUBSTEPS
 from datagen.study.sweep import CHAOS_MM, CONVERGED_MM, TWIN_METRES, Row, pareto
+
+STATE_NOTE = "state.md"
 
 
 def _fmt(x: float, digits: int = 2) -> str:
@@ -250,6 +256,8 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
             "trajectories bit-identical (`datagen.study.fingerprint`: every solver series at "
             "its cheapest settings and the reference's first rung, over the scene's first "
             "frames), so they stand for today's simulator."]),
+        *([] if not (out / STATE_NOTE).is_file() else [
+            "", (out / STATE_NOTE).read_text().strip("\n")]),
         "",
         "## The scenes",
         "",
