@@ -319,7 +319,7 @@ def test_user_fabrics_from_yaml(tmp_path):
 
 def test_frames_over_the_strain_bound_are_redone_with_more_substeps(monkeypatch):
     """A sheet falling on a sphere at the draft preset. With a strain bound that more substeps
-    help to meet (2 %), frames that end over it are redone with more substeps and the refined
+    help to meet (1.2 %), frames that end over it are redone with more substeps and the refined
     run ends less strained than the plain one. Where substeps cannot help, the refinement rests
     between tries instead of redoing every frame. With refinement off, no frame is redone."""
     from datagen.sim.fabrics import FABRICS as BUILTIN
@@ -336,13 +336,15 @@ def test_frames_over_the_strain_bound_are_redone_with_more_substeps(monkeypatch)
                              strain_refinements=refinements)
         return simulate([sheet], track, options)
 
-    plain, refined = run(0.02, 0), run(0.02, 2)
+    plain, refined = run(0.012, 0), run(0.012, 2)
     assert plain.report["strain_refinements"] == 0 and plain.report["frame_substeps_max"] == 10
     assert refined.report["frame_substeps_max"] in (20, 40)
     assert refined.report["strain_refinements"] > 0
-    # The plain run ends over the bound, the refined one within it (measured: 0.025 and 0.019;
-    # 0.060 and 0.020 before the strain limit had the last word over friction).
-    assert refined.qa["strain_p999"][-1] < 0.02 < plain.qa["strain_p999"][-1]
+    # The plain run ends over the bound, the refined one within it (measured: 0.0129 and
+    # 0.0114. At a 2 % bound they were 0.025 and 0.019 with at most 4 sweeps of the limit after
+    # contact, 0.060 and 0.020 before the limit had the last word over friction; with 16 the
+    # plain run ends within 2 % too.)
+    assert refined.qa["strain_p999"][-1] < 0.012 < plain.qa["strain_p999"][-1]
     # A sheet pinned along two lines on a cylinder that widens by 60 %: the band between the
     # pins must stretch, whatever the substeps. Once a frame's 4x run does not help, the
     # refinement rests, so most over-strained frames are not redone. (Without tethers: they
@@ -414,7 +416,10 @@ def test_a_tight_sleeve_slides_on_a_lengthening_limb_instead_of_stretching_past_
     strain = (np.linalg.norm(x[:, e[:, 1]] - x[:, e[:, 0]], axis=2)
               / model.rest_length[model.fabric_springs] - 1.0)
     limit = STRAIN_LIMIT_FRACTION * FABRICS["cotton"].max_strain
-    assert strain.max() < limit + 2e-3, strain.max()  # the sweeps stop at 0.1 % past it
+    # The sweeps stop at 0.1 % past it, or after 16: over-relaxed constraint sweeps leave a
+    # few hoop edges up to 0.2 % past it (0.2273 against 0.225, measured; at most 4 sweeps
+    # after contact left 2 % of the edges up to 3 % past it).
+    assert strain.max() < limit + 3e-3, strain.max()
     assert strain.max() > 0.99 * limit  # it is tight: the limit holds it
     assert x[-1, :, 2].mean() - x[0, :, 2].mean() > 0.05  # the skin carried it up
     assert result.qa["deep_share"].max() == 0.0
@@ -441,27 +446,64 @@ def test_tethers_are_the_strain_limits_shortest_path_to_a_pin():
 
 def test_tethers_hold_a_swinging_sheet_that_sweeps_alone_let_stretch(monkeypatch):
     """A 1 m leather sheet pinned along one edge swings down at the draft preset: two sweeps
-    per substep carry the pull of the pins down 60 springs too slowly, and the sheet stretches
-    far past leather's bound (p99.9 strain 0.61 against 0.15, measured). With tethers no vertex
-    ends a frame farther from its pin than the strain limit allows, and the strain halves
-    (0.24)."""
+    per substep carry the pull of the pins down 60 springs too slowly, and with plain sweeps
+    the sheet stretches far past leather's bound (p99.9 strain 0.61 against 0.15, measured).
+    With tethers no vertex ends a frame farther from its pin than the strain limit allows, and
+    the strain halves (0.24). The draft's over-relaxed sweeps (the default, 1.6) strain this
+    free swing more (0.58 with tethers, 0.71 without; docs/simulator.md): the tethers still
+    bound every reach."""
     from datagen.sim import solvers
 
-    def swing(tethers: bool):
+    def swing(tethers: bool, sor: float | None = None):
         monkeypatch.setattr(solvers.XPBDSolver, "uses_tethers", tethers)
         sheet = grid_sheet(60, 1.0, 1.5, fabric="leather")
         sheet.pinned = np.flatnonzero(np.isclose(sheet.vertices[:, 0], -0.5))
         options = SimOptions(quality="draft", frames=45, settle_seconds=0.0, effects="all",
-                             strain_refinements=0)
+                             strain_refinements=0, sor=sor)
         return sheet, simulate([sheet], None, options)
 
-    sheet, held = swing(True)
-    _, loose = swing(False)
+    sheet, held = swing(True, 1.0)
+    _, loose = swing(False, 1.0)
+    _, relaxed = swing(True)
     pairs, length = build_cloth_model([(sheet, FABRICS["leather"])]).tethers
-    x = held.vertices[sheet.name].astype(np.float64)
-    reach = np.linalg.norm(x[:, pairs[:, 0]] - x[:, pairs[:, 1]], axis=2) / length
-    assert reach.max() < 1.0 + 1e-5
+    for run in (held, relaxed):
+        x = run.vertices[sheet.name].astype(np.float64)
+        reach = np.linalg.norm(x[:, pairs[:, 0]] - x[:, pairs[:, 1]], axis=2) / length
+        assert reach.max() < 1.0 + 1e-5
     assert held.qa["strain_p999"].max() < 0.5 * loose.qa["strain_p999"].max()
+
+
+def test_over_relaxed_sweeps_follow_the_converged_swing_closer_at_the_same_cost():
+    """A 1 m leather sheet (40x40) pinned along one edge swings down for a second. A
+    Gauss-Seidel sweep carries the pins' pull about one spring along, so plain sweeps leave the
+    sheet lagging the implicit solver at 40 substeps: 12.8 mm RMS at the default 20x4, 57 mm
+    at the draft 10x2 (measured). Over-relaxed sweeps (the xpbd default, 1.6) carry it further
+    per sweep: 9.5 and 28 mm, the default's strain still within leather's bound. The report
+    records the factor, and one outside (0, 2), where the sweeps diverge, is refused."""
+    from datagen.errors import InputError
+
+    def swing(**kw):
+        sheet = grid_sheet(40, 1.0, 1.5, fabric="leather")
+        sheet.pinned = np.flatnonzero(np.isclose(sheet.vertices[:, 0], -0.5))
+        options = SimOptions(frames=30, settle_seconds=0.0, effects="all",
+                             strain_refinements=0, **kw)
+        result = simulate([sheet], None, options)
+        return result.vertices[sheet.name].astype(np.float64), result
+
+    ref, _ = swing(solver="implicit", substeps=40, iterations=20)
+
+    def error_mm(x):
+        return 1000 * np.sqrt(np.mean(np.sum((x - ref) ** 2, axis=2)))
+
+    for quality, gain in (("default", 0.8), ("draft", 0.6)):
+        plain, _ = swing(quality=quality, sor=1.0)
+        relaxed, result = swing(quality=quality)
+        assert result.report["sor"] == 1.6
+        assert error_mm(relaxed) < gain * error_mm(plain), quality
+        if quality == "default":  # (the draft's 10x2 is over it either way: 0.22 and 0.32)
+            assert result.qa["strain_p999"].max() < FABRICS["leather"].max_strain
+    with pytest.raises(InputError, match="field 'sor'.*in \\(0, 2\\), got 2.0"):
+        swing(sor=2.0)
 
 
 def test_one_xpbd_iteration_stays_stable_at_first_contact():
