@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import click
 import numpy as np
 import pytest
@@ -267,6 +269,45 @@ def test_a_failing_finer_rung_ends_the_reference_ladder(monkeypatch):
     monkeypatch.setattr(sweep, "run_worker", failing_first)
     with pytest.raises(RuntimeError, match="boom"):
         sweep.reference_ladder("sheet_sphere", "denim", "4k", plan, 31, lambda _: None)
+
+
+def test_a_reference_ladder_is_reused_while_the_reference_behaves_the_same(monkeypatch,
+                                                                            tmp_path):
+    """A part's float64 ladder is most of its time and depends only on the implicit solver: a
+    change to xpbd alone must not cost it again. The ladder is stored under the reference's
+    behavioural fingerprint: the same fingerprint with other sources reads it back (and says
+    which sources measured it); another fingerprint measures it again. The worker and the
+    fingerprint are replaced: this is about the bookkeeping."""
+    from datagen.study import cache, fingerprint, sweep
+
+    monkeypatch.setenv("DATAGEN_CACHE_DIR", str(tmp_path))
+    base = np.random.default_rng(1).normal(size=(31, 20, 3))
+    runs = []
+
+    def worker(scene, fabric, resolution, solver, substeps, iterations, fp64, frames=None,
+               perturb=0.0):
+        runs.append(substeps)
+        n = 31 if frames is None else frames + 1
+        return {"positions": (base + 1e-4 / substeps)[:n], "wall": np.float64(2.0)}
+
+    monkeypatch.setattr(sweep, "run_worker", worker)
+    behaviour = {"digest": "a" * 16}
+    monkeypatch.setattr(fingerprint, "reference_fingerprint", lambda *a: behaviour["digest"])
+    monkeypatch.setattr(cache, "source_digest", lambda: "sources-one")
+    plan = replace(sweep.full_plan(), reference_levels=2)
+    first = sweep.stored_reference_ladder("sheet_sphere", "cotton", "4k", plan, 31,
+                                          lambda _: None)
+    assert first[3] is None and runs == [40, 40, 80, 80]  # each rung and its twin
+    monkeypatch.setattr(cache, "source_digest", lambda: "sources-two")
+    runs.clear()
+    again = sweep.stored_reference_ladder("sheet_sphere", "cotton", "4k", plan, 31,
+                                          lambda _: None)
+    assert runs == [] and again[3] == "sources-one"
+    assert np.array_equal(again[0], first[0]) and again[1] == first[1] and again[2] == first[2]
+    behaviour["digest"] = "b" * 16  # the implicit solver changed
+    third = sweep.stored_reference_ladder("sheet_sphere", "cotton", "4k", plan, 31,
+                                          lambda _: None)
+    assert runs == [40, 40, 80, 80] and third[3] is None
 
 
 def test_reading_states_what_the_rows_show():

@@ -38,9 +38,11 @@ def source_digest() -> str:
 
 
 def cached(key: dict, compute: Callable[[], dict[str, np.ndarray]],
-           use_cache: bool = True) -> dict[str, np.ndarray]:
-    """The arrays `compute()` returns for `key`, from the cache when an entry exists."""
-    text = json.dumps({**key, "source": source_digest()}, sort_keys=True)
+           use_cache: bool = True, by_source: bool = True) -> dict[str, np.ndarray]:
+    """The arrays `compute()` returns for `key`, from the cache when an entry exists.
+    `by_source=False` leaves the source digest out of the key: the caller's key then names
+    what the result depends on (a behavioural digest, study.fingerprint)."""
+    text = json.dumps({**key, "source": source_digest()} if by_source else key, sort_keys=True)
     name = hashlib.sha256(text.encode()).hexdigest()[:24]
     path = cache_dir() / f"{name}.npz"
     if use_cache and path.exists():

@@ -56,19 +56,55 @@ def part_fingerprint(scene_name: str, resolution: str, fabric: str, plan) -> str
     for each version of the simulator."""
     from datagen.study.cache import cached
     from datagen.study.scenes import build_scene
-    from datagen.study.sweep import run_worker
 
     def compute() -> dict[str, np.ndarray]:
         frames = fingerprint_frames(scene_name)
         ours = scene_fingerprint(build_scene(scene_name, fabric, resolution, frames=frames),
                                  plan.configs)
-        ref = run_worker(scene_name, fabric, resolution, "implicit", plan.start_for(scene_name),
-                         20, fp64=True, frames=frames)["positions"]
+        ref = _reference_start(scene_name, resolution, fabric, plan)
         h = hashlib.sha256(ours.encode())
         h.update(np.ascontiguousarray(ref, np.float64).tobytes())
-        return {"digest": np.frombuffer(h.hexdigest()[:16].encode(), np.uint8)}
+        return {"digest": _text(h.hexdigest()[:16])}
 
     key = {"fingerprint": 1, "scene": scene_name, "resolution": resolution, "fabric": fabric,
            "configs": {solver: list(c[0]) for solver, c in plan.configs.items()},
            "reference_start": plan.start_for(scene_name), "frames": fingerprint_frames(scene_name)}
     return bytes(cached(key, compute)["digest"]).decode()
+
+
+def reference_fingerprint(scene_name: str, resolution: str, fabric: str, plan) -> str:
+    """The fingerprint of a part's float64 reference alone (its ladder's first rung over the
+    scene's first frames): a simulator change that leaves it equal (one to the xpbd solver)
+    leaves the reference ladder as it was. Cached per source digest."""
+    from datagen.study.cache import cached
+
+    def compute() -> dict[str, np.ndarray]:
+        ref = _reference_start(scene_name, resolution, fabric, plan)
+        digest = hashlib.sha256(np.ascontiguousarray(ref, np.float64).tobytes())
+        return {"digest": _text(digest.hexdigest()[:16])}
+
+    key = {"reference_fingerprint": 1, "scene": scene_name, "resolution": resolution,
+           "fabric": fabric, "reference_start": plan.start_for(scene_name),
+           "frames": fingerprint_frames(scene_name)}
+    return bytes(cached(key, compute)["digest"]).decode()
+
+
+def _reference_start(scene_name: str, resolution: str, fabric: str, plan) -> np.ndarray:
+    """The reference ladder's first rung over the fingerprint's frames (float64, in a worker
+    process), cached per source digest: both fingerprints above read it."""
+    from datagen.study.cache import cached
+    from datagen.study.sweep import run_worker
+
+    def compute() -> dict[str, np.ndarray]:
+        return {"positions": run_worker(
+            scene_name, fabric, resolution, "implicit", plan.start_for(scene_name), 20,
+            fp64=True, frames=fingerprint_frames(scene_name))["positions"]}
+
+    key = {"reference_start_run": 1, "scene": scene_name, "resolution": resolution,
+           "fabric": fabric, "substeps": plan.start_for(scene_name),
+           "frames": fingerprint_frames(scene_name)}
+    return cached(key, compute)["positions"]
+
+
+def _text(digest: str) -> np.ndarray:
+    return np.frombuffer(digest.encode(), np.uint8)

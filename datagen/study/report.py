@@ -256,6 +256,15 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
             "trajectories bit-identical (`datagen.study.fingerprint`: every solver series at "
             "its cheapest settings and the reference's first rung, over the scene's first "
             "frames), so they stand for today's simulator."]),
+        *([] if not summary.get("earlier_reference_parts") else [
+            "",
+            f"**References from an earlier run: "
+            f"{', '.join(summary['earlier_reference_parts'])}.** Their float64 reference "
+            "ladders were measured with earlier simulator sources (named in the summary) whose "
+            "reference behaves as today's on the scene (`datagen.study.fingerprint."
+            "reference_fingerprint`), and were read from the study cache; the ladders' run "
+            "times are that run's. Every other figure of these parts was measured in their own "
+            "run."]),
         *([] if not (out / STATE_NOTE).is_file() else [
             "", (out / STATE_NOTE).read_text().strip("\n")]),
         "",

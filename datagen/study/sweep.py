@@ -185,6 +185,43 @@ def reference_ladder(scene: str, fabric: str, resolution: str, plan: Plan, horiz
     return runs[-1], ladder, predictable
 
 
+def stored_reference_ladder(scene: str, fabric: str, resolution: str, plan: Plan, horizon: int,
+                            log) -> tuple[np.ndarray, list[dict], int, str | None]:
+    """reference_ladder, kept in the study cache under the reference's behaviour
+    (fingerprint.reference_fingerprint) instead of the simulator's sources: the ladder is most
+    of a part's time, and a change to another solver leaves it as it was. Returns its three
+    results and the source digest of the run that measured it when that was an earlier run
+    (None when measured now)."""
+    from datagen.study.cache import cached, source_digest
+    from datagen.study.fingerprint import reference_fingerprint
+
+    key = {"reference_ladder": 1, "scene": scene, "resolution": resolution, "fabric": fabric,
+           "behaviour": reference_fingerprint(scene, resolution, fabric, plan),
+           "start": plan.start_for(scene), "levels": plan.reference_levels,
+           "budget_s": plan.reference_budget_s, "horizon": horizon,
+           "frames": SCENE_FRAMES.get(scene), "twin_metres": TWIN_METRES, "chaos_mm": CHAOS_MM,
+           "converged_mm": CONVERGED_MM}
+    measured_now = []
+
+    def compute() -> dict[str, np.ndarray]:
+        ref, ladder, pred = reference_ladder(scene, fabric, resolution, plan, horizon, log)
+        measured_now.append(True)
+        return {"reference": ref, "ladder": _as_bytes(json.dumps(ladder, default=float)),
+                "predictable": np.array(pred), "sources": _as_bytes(source_digest())}
+
+    d = cached(key, compute, by_source=False)
+    sources = bytes(d["sources"]).decode()
+    if not measured_now:
+        log(f"  reference ladder from the study cache (measured with simulator sources "
+            f"{sources}, whose float64 reference behaves as today's)")
+    return (d["reference"], json.loads(bytes(d["ladder"]).decode()), int(d["predictable"]),
+            None if measured_now else sources)
+
+
+def _as_bytes(text: str) -> np.ndarray:
+    return np.frombuffer(text.encode(), np.uint8)
+
+
 # -- the sweep ---------------------------------------------------------------------------------
 def _probe_map(src_rest: np.ndarray, src_faces: np.ndarray, probes: np.ndarray):
     """Barycentric coordinates of probe points on a (rest) mesh, to compare meshes of different
@@ -287,7 +324,8 @@ def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_ble
     log(f"{key}: reference")
     scene = build_scene(scene_name, fabric, resolution)
     horizon = scene.horizon + 1
-    ref, ladder, pred = reference_ladder(scene_name, fabric, resolution, plan, horizon, log)
+    ref, ladder, pred, ladder_sources = stored_reference_ladder(scene_name, fabric, resolution,
+                                                                plan, horizon, log)
     for solver, configs in plan.configs.items():
         for sub, it in configs:
             try:
@@ -329,7 +367,7 @@ def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_ble
                              f"against Blender quality {plan.blender_converged}", pred))
             log(f"  blender q{q}: {asdict(rows[-1])}")
     return {"key": key, "signature": _plan_signature(plan, scene_name), "behaviour": behaviour,
-            "ladder": ladder,
+            "ladder": ladder, "ladder_sources": ladder_sources,
             "predictable_frames": pred, "blender_vs_ours_mm": gap,
             "blender": peer.blender_version() if have_blender else "absent",
             "minutes": (time.time() - t_start) / 60, "rows": [asdict(r) for r in rows]}
@@ -399,6 +437,8 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
         "missing_parts": missing,
         "earlier_simulator_parts": earlier,
         "carried_over_parts": carried,
+        "earlier_reference_parts": {p["key"]: p["ladder_sources"] for p in parts
+                                    if p.get("ladder_sources")},
         "quick": quick, "minutes": sum(p["minutes"] for p in parts),
         "ladders": {p["key"]: p["ladder"] for p in parts},
         "predictable_frames": {p["key"]: p["predictable_frames"] for p in parts},
