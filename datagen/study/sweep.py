@@ -460,7 +460,8 @@ def write_outputs(out: Path, rows: list[Row], summary: dict,
         for r in rows:
             w.writerow(asdict(r))
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
-    plot(out / "accuracy-vs-time.png", rows, presets)
+    plot(out / "accuracy-vs-time.png", rows, presets,
+         set(summary.get("earlier_simulator_parts", [])))
 
 
 def pareto(points: list[tuple[float, float]]) -> list[int]:
@@ -474,7 +475,10 @@ def pareto(points: list[tuple[float, float]]) -> list[int]:
     return front
 
 
-def plot(path: Path, rows: list[Row], presets: dict[str, tuple[int, int]] | None = None) -> None:
+def plot(path: Path, rows: list[Row], presets: dict[str, tuple[int, int]] | None = None,
+         earlier: set[str] | None = None) -> None:
+    """The Pareto plot, a panel per scene and fabric; `earlier` ("scene/fabric") panels were
+    measured with an earlier simulator and say so in their titles."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -511,7 +515,8 @@ def plot(path: Path, rows: list[Row], presets: dict[str, tuple[int, int]] | None
         ax.set_yscale("log")
         ax.set_xlabel("wall-clock seconds per simulated second")
         ax.set_ylabel("RMS error over the predictable horizon (mm)")
-        ax.set_title(f"{scene}, {fabric}")
+        ax.set_title(f"{scene}, {fabric}" + ("\n(earlier simulator)"
+                                               if f"{scene}/{fabric}" in (earlier or ()) else ""))
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
