@@ -437,6 +437,29 @@ def bends_gauss_seidel(
 
 
 @ti.kernel
+def stiff_bends_gauss_seidel(
+    x: V3,
+    xp: V3,
+    w: F1,
+    bends: I4,
+    kw: V4,
+    comp: F1,
+    beta: F1,
+    lam_b: V3,
+    stiff: I1,
+    n_stiff: ti.i32,
+    h: REAL,
+    reverse: ti.i32,
+    omega: REAL,
+):
+    """A sweep over the bends listed in `stiff` (the later sweeps of a substep)."""
+    ti.loop_config(serialize=True)
+    for m in range(n_stiff):
+        b = stiff[sweep_order(m, n_stiff, reverse)]
+        bend_gs_one(b, x, xp, w, bends, kw, comp, beta, lam_b, h, omega)
+
+
+@ti.kernel
 def springs_jacobi(
     x: V3,
     xp: V3,
@@ -1170,7 +1193,8 @@ P_SIZE = 34
 Q_N_SUB, Q_N_ITER, Q_SWEEP0, Q_N_SETS, Q_N_BENDS, Q_N_PINS, Q_S_MASK = range(7)
 Q_DIMS, Q_L_DIMS = 7, 10  # 3 values each
 Q_N_TETHERS = 13
-Q_SIZE = 14
+Q_N_STIFF_BENDS = 14
+Q_SIZE = 15
 
 
 @ti.kernel
@@ -1193,6 +1217,7 @@ def xpbd_frame(
     bcomp: F1,
     bbeta: F1,
     lam_b: V3,
+    stiff_bends: I1,
     pin_idx: I1,
     pin_t0: V3,
     pin_t1: V3,
@@ -1273,6 +1298,7 @@ def xpbd_frame(
     sweep0 = Q[Q_SWEEP0]
     n_sets = Q[Q_N_SETS]
     n_bends = Q[Q_N_BENDS]
+    n_stiff = Q[Q_N_STIFF_BENDS]
     n_pins = Q[Q_N_PINS]
     n_tethers = Q[Q_N_TETHERS]
     s_mask = Q[Q_S_MASK]
@@ -1295,14 +1321,17 @@ def xpbd_frame(
             lam_b[b] = vec3(0.0)
         for it in range(n_iter):
             reverse = (sweep0 + k * n_iter + it) % 2
-            # Bending: the first sweep only, before the springs (see XPBDSolver.substep).
+            # Bending before the springs: every bend in the first sweep, the stiff ones in every
+            # sweep (see XPBDSolver.substep).
             nb = n_bends
             if it > 0:
-                nb = 0
+                nb = n_stiff
             for m in range(nb):
                 b = m
                 if reverse != 0:
                     b = nb - 1 - m
+                if it > 0:
+                    b = stiff_bends[b]
                 bend_gs_one(b, x, xp, w, bends, kw, bcomp, bbeta, lam_b, h, omega)
             for si in range(n_sets):
                 lo = set_ranges[si][0]

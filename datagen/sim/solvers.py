@@ -28,6 +28,14 @@ from datagen.sim.effects import Effects
 from datagen.sim.model import SEAM, SHEAR, STRUCTURAL, ClothModel
 from datagen.sim.precision import NP_REAL, REAL, VEC3, VEC4
 
+# A bend is stiff at step h when its compliance over h^2 is below its generalised inverse mass
+# (sum of weight^2 / mass over its four vertices): a Gauss-Seidel sweep then leaves about
+# 1 / (1 + ratio) of its error or more, too much for one sweep per substep. Soft bends (cotton,
+# silk at the default step: median ratios 1.5-95) converge in one sweep; denim on the 5k tube
+# (median 0.25) did not: 45 mm from the reference after 16 frames at 20x4 with one bending
+# sweep, 32 mm with its stiff bends swept in all four (Blender's quality 5: 36 mm from its own
+# converged run). docs/simulator.md, "Sweep order".
+STIFF_BEND_RATIO = 1.0
 STRAIN_LIMIT_SWEEPS = 20  # force-based solvers: most projection sweeps per substep
 STRAIN_LIMIT_TOLERANCE = 1e-4  # ... and the excess (relative to the limit) that ends them
 
@@ -133,6 +141,8 @@ class ClothSolver:
             self.kw = _nd(VEC4, model.bend_weights.astype(NP_REAL))
             self.bstiff = _nd(REAL, model.bend_stiffness.astype(NP_REAL))
             self.bcomp = _nd(REAL, (1.0 / model.bend_stiffness).astype(NP_REAL))
+            kw2 = model.bend_weights.astype(np.float64) ** 2
+            self.bend_inv_mass = (kw2 * w.astype(np.float64)[model.bends]).sum(axis=1)
             self.bbeta = _nd(REAL, model.bend_beta.astype(NP_REAL))
             self.lam_b = ti.ndarray(VEC3, self.n_bends)
             self.b_out = ti.ndarray(VEC3, self.n_bends)
@@ -416,6 +426,9 @@ class XPBDSolver(ClothSolver):
     def __init__(self, model, effects, settings) -> None:
         super().__init__(model, effects, settings)
         self.gauss_seidel = serial()
+        self._stiff_h: float | None = None
+        self.n_stiff_bends = 0
+        self.stiff_bends = _nd(ti.i32, np.zeros(1, np.int32))
         if not self.gauss_seidel:
             self._build_jacobi_adjacency()
         self._build_fused()
@@ -468,10 +481,30 @@ class XPBDSolver(ClothSolver):
         self.Q = ti.ndarray(ti.i32, K.Q_SIZE)
         self.wind_np = np.asarray(self.settings.wind if self.effects.wind else (0.0, 0.0, 0.0))
 
+    def stiff_bend_ids(self, h: float) -> np.ndarray:
+        """The bends too stiff at step h to converge in one sweep (see STIFF_BEND_RATIO), in
+        sweep order."""
+        if not self.n_bends:
+            return np.zeros(0, np.int32)
+        compliance = 1.0 / (self.model.bend_stiffness * h * h)
+        # All four vertices pinned: nothing to move, never stiff.
+        stiff = compliance < STIFF_BEND_RATIO * self.bend_inv_mass
+        return np.flatnonzero(stiff).astype(np.int32)
+
+    def _use_step(self, h: float) -> None:
+        """Upload the stiff bends for step h (once per step size: retries change it)."""
+        if h == self._stiff_h:
+            return
+        ids = self.stiff_bend_ids(h)
+        self.n_stiff_bends = len(ids)
+        self.stiff_bends = _nd(ti.i32, ids if len(ids) else np.zeros(1, np.int32))
+        self._stiff_h = h
+
     def advance_frame(self, collider, n_sub: int, h: float, profile: bool = False) -> None:
         if profile or not self.gauss_seidel:
             return super().advance_frame(collider, n_sub, h, profile)
         self.begin_frame(collider, n_sub * h)
+        self._use_step(h)
         import time
 
         e = self.effects
@@ -509,6 +542,7 @@ class XPBDSolver(ClothSolver):
         Q[K.Q_SWEEP0] = self._sweep
         Q[K.Q_N_SETS] = self.f_nsets
         Q[K.Q_N_BENDS] = self.n_bends
+        Q[K.Q_N_STIFF_BENDS] = self.n_stiff_bends
         Q[K.Q_N_PINS] = self.n_pins
         Q[K.Q_N_TETHERS] = self.n_tethers
         Q[K.Q_S_MASK] = self.s_mask
@@ -521,7 +555,7 @@ class XPBDSolver(ClothSolver):
             self.f_springs, self.f_rest, self.f_limit, self.f_comp_t, self.f_comp_c, self.f_beta,
             self.f_lam,
             self.f_ranges,
-            self.bends, self.kw, self.bcomp, self.bbeta, self.lam_b,
+            self.bends, self.kw, self.bcomp, self.bbeta, self.lam_b, self.stiff_bends,
             self.pin_idx, self.pin_t0, self.pin_t1, self.tethers, self.tether_len,
             self.tri, c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, c.bs0, c.bs1, c.ns1,
             self.thickness, self.friction, self.contact_n, self.contact_v,
@@ -602,6 +636,7 @@ class XPBDSolver(ClothSolver):
 
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
         e = self.effects
+        self._use_step(h)
         self._run(
             "gravity" if e.gravity else "air_drag",
             K.predict,
@@ -624,15 +659,21 @@ class XPBDSolver(ClothSolver):
         for it in range(self.settings.iterations):
             reverse = self._sweep % 2
             self._sweep += 1
-            # Bending is soft: one sweep per substep converges it; the further iterations go to
-            # the stiff stretch and shear springs (as in the fused kernel). It runs before them:
-            # its damping reads the sweep's displacement as velocity, and run last (with one
-            # iteration) it undid the springs' corrections on a 1 cm cotton sheet at first
-            # contact, which grew 30x a frame into a runaway.
-            bend = it == 0
+            # Most bending is soft: one sweep per substep converges it, and the further
+            # iterations go to the stiff stretch and shear springs (as in the fused kernel);
+            # bends stiff at this step (STIFF_BEND_RATIO: denim, leather) are swept every time
+            # (the Jacobi path, with no kernel for a subset, then sweeps all bends every time).
+            # Bending runs before the springs: its damping reads the sweep's displacement as
+            # velocity, and run last (with one iteration) it undid the springs' corrections on
+            # a 1 cm cotton sheet at first contact, which grew 30x a frame into a runaway.
+            bend = it == 0 or self.n_stiff_bends > 0
             if self.gauss_seidel:
-                if self.n_bends and bend:
+                if self.n_bends and it == 0:
                     self._run("bending", K.bends_gauss_seidel, *self._bend_args(), h, reverse,
+                              self.settings.sor)
+                elif self.n_stiff_bends:
+                    self._run("bending", K.stiff_bends_gauss_seidel, *self._bend_args(),
+                              self.stiff_bends, self.n_stiff_bends, h, reverse,
                               self.settings.sor)
                 for name, s in self.sets.items():
                     self._run(
