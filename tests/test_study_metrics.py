@@ -210,6 +210,28 @@ def test_the_fingerprint_repeats_and_sees_a_change_in_what_the_simulator_does():
     assert scene_fingerprint(scene, configs) != first
 
 
+def test_the_fingerprint_sees_a_change_that_only_later_sweeps_make(monkeypatch):
+    """Sweeping stiff bending stencils again in a substep's later sweeps (29b9dd5) changes
+    nothing at one iteration, and a fingerprint of each series' cheapest setting (5x1) carried
+    every part over it: the denim skirt's `default` moved from 41.4 to 34.8 mm. The fingerprint
+    also runs the series' setting with the most iterations, and sees it."""
+    from datagen.sim import solvers
+    from datagen.study.fingerprint import fingerprint_configs, fingerprint_frames, scene_fingerprint
+    from datagen.study.scenes import build_scene
+
+    assert fingerprint_configs([(5, 1), (20, 4), (40, 8), (80, 8)]) == [(5, 1), (40, 8)]
+    assert fingerprint_configs([(200, 1), (400, 1)]) == [(200, 1)]
+    scene = build_scene("sheet_sphere", "leather", "coarse",
+                        frames=fingerprint_frames("sheet_sphere"))
+    configs = {"xpbd": [(5, 1), (20, 4)]}
+    cheapest = {"xpbd": [(5, 1)]}
+    today = scene_fingerprint(scene, configs), scene_fingerprint(scene, cheapest)
+    monkeypatch.setattr(solvers, "STIFF_BEND_RATIO", 0.0)  # the sweeps before 29b9dd5
+    before = scene_fingerprint(scene, configs), scene_fingerprint(scene, cheapest)
+    assert before[1] == today[1]  # what the cheapest setting alone saw
+    assert before[0] != today[0]
+
+
 def test_a_failing_finer_rung_ends_the_reference_ladder(monkeypatch):
     """The study's denim sheet was rejected at 160 substeps (a whipping corner tripped the
     runaway guard) and the exception ended the whole study. A finer rung that fails now ends
