@@ -1326,13 +1326,19 @@ def xpbd_frame(
             nb = n_bends
             if it > 0:
                 nb = n_stiff
+            # The stiff bends' later sweeps are plain Gauss-Seidel: over-relaxed, their damping
+            # (which reads the earlier sweeps' displacement as velocity) ran the fast kick's
+            # trousers away (83 m/s at frame 35).
+            omega_b = omega
+            if it > 0:
+                omega_b = 1.0
             for m in range(nb):
                 b = m
                 if reverse != 0:
                     b = nb - 1 - m
                 if it > 0:
                     b = stiff_bends[b]
-                bend_gs_one(b, x, xp, w, bends, kw, bcomp, bbeta, lam_b, h, omega)
+                bend_gs_one(b, x, xp, w, bends, kw, bcomp, bbeta, lam_b, h, omega_b)
             for si in range(n_sets):
                 lo = set_ranges[si][0]
                 hi = set_ranges[si][1]

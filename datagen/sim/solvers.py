@@ -672,9 +672,9 @@ class XPBDSolver(ClothSolver):
                     self._run("bending", K.bends_gauss_seidel, *self._bend_args(), h, reverse,
                               self.settings.sor)
                 elif self.n_stiff_bends:
+                    # Not over-relaxed (see the fused kernel).
                     self._run("bending", K.stiff_bends_gauss_seidel, *self._bend_args(),
-                              self.stiff_bends, self.n_stiff_bends, h, reverse,
-                              self.settings.sor)
+                              self.stiff_bends, self.n_stiff_bends, h, reverse, 1.0)
                 for name, s in self.sets.items():
                     self._run(
                         name,
