@@ -423,39 +423,23 @@ def bends_gauss_seidel(
     comp: F1,
     beta: F1,
     lam_b: V3,
+    listed: I1,
+    n_listed: ti.i32,
     h: REAL,
     reverse: ti.i32,
     omega: REAL,
+    only_listed: ti.template(),
 ):
-    n_bends = bends.shape[0]
+    """A Gauss-Seidel sweep over every bend, or with `only_listed` over the first n_listed
+    bends of `listed` (the stiff ones, in a substep's later sweeps)."""
+    n = bends.shape[0]
+    if ti.static(only_listed):
+        n = n_listed
     ti.loop_config(serialize=True)
-    for m in range(n_bends):
-        b = m
-        if reverse != 0:
-            b = n_bends - 1 - m
-        bend_gs_one(b, x, xp, w, bends, kw, comp, beta, lam_b, h, omega)
-
-
-@ti.kernel
-def stiff_bends_gauss_seidel(
-    x: V3,
-    xp: V3,
-    w: F1,
-    bends: I4,
-    kw: V4,
-    comp: F1,
-    beta: F1,
-    lam_b: V3,
-    stiff: I1,
-    n_stiff: ti.i32,
-    h: REAL,
-    reverse: ti.i32,
-    omega: REAL,
-):
-    """A sweep over the bends listed in `stiff` (the later sweeps of a substep)."""
-    ti.loop_config(serialize=True)
-    for m in range(n_stiff):
-        b = stiff[sweep_order(m, n_stiff, reverse)]
+    for m in range(n):
+        b = sweep_order(m, n, reverse)
+        if ti.static(only_listed):
+            b = listed[b]
         bend_gs_one(b, x, xp, w, bends, kw, comp, beta, lam_b, h, omega)
 
 

@@ -669,12 +669,13 @@ class XPBDSolver(ClothSolver):
             bend = it == 0 or self.n_stiff_bends > 0
             if self.gauss_seidel:
                 if self.n_bends and it == 0:
-                    self._run("bending", K.bends_gauss_seidel, *self._bend_args(), h, reverse,
-                              self.settings.sor)
+                    self._run("bending", K.bends_gauss_seidel, *self._bend_args(),
+                              self.stiff_bends, self.n_stiff_bends, h, reverse,
+                              self.settings.sor, False)
                 elif self.n_stiff_bends:
                     # Not over-relaxed (see the fused kernel).
-                    self._run("bending", K.stiff_bends_gauss_seidel, *self._bend_args(),
-                              self.stiff_bends, self.n_stiff_bends, h, reverse, 1.0)
+                    self._run("bending", K.bends_gauss_seidel, *self._bend_args(),
+                              self.stiff_bends, self.n_stiff_bends, h, reverse, 1.0, True)
                 for name, s in self.sets.items():
                     self._run(
                         name,
