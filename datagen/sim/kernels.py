@@ -1317,9 +1317,7 @@ def xpbd_frame(
             if it > 0:
                 omega_b = 1.0
             for m in range(nb):
-                b = m
-                if reverse != 0:
-                    b = nb - 1 - m
+                b = sweep_order(m, nb, reverse)
                 if it > 0:
                     b = stiff_bends[b]
                 bend_gs_one(b, x, xp, w, bends, kw, bcomp, bbeta, lam_b, h, omega_b)

@@ -141,8 +141,6 @@ class ClothSolver:
             self.kw = _nd(VEC4, model.bend_weights.astype(NP_REAL))
             self.bstiff = _nd(REAL, model.bend_stiffness.astype(NP_REAL))
             self.bcomp = _nd(REAL, (1.0 / model.bend_stiffness).astype(NP_REAL))
-            kw2 = model.bend_weights.astype(np.float64) ** 2
-            self.bend_inv_mass = (kw2 * w.astype(np.float64)[model.bends]).sum(axis=1)
             self.bbeta = _nd(REAL, model.bend_beta.astype(NP_REAL))
             self.lam_b = ti.ndarray(VEC3, self.n_bends)
             self.b_out = ti.ndarray(VEC3, self.n_bends)
@@ -428,6 +426,9 @@ class XPBDSolver(ClothSolver):
         self.gauss_seidel = serial()
         self._stiff_h: float | None = None
         self.n_stiff_bends = 0
+        if self.n_bends:  # each bend's generalised inverse mass (see STIFF_BEND_RATIO)
+            kw2 = model.bend_weights.astype(np.float64) ** 2
+            self.bend_inv_mass = (kw2 * self.w_np.astype(np.float64)[model.bends]).sum(axis=1)
         self.stiff_bends = _nd(ti.i32, np.zeros(1, np.int32))
         if not self.gauss_seidel:
             self._build_jacobi_adjacency()

@@ -76,7 +76,8 @@ def part_fingerprint(scene_name: str, resolution: str, fabric: str, plan) -> str
         return {"digest": _text(h.hexdigest()[:16])}
 
     key = {"fingerprint": 2, "scene": scene_name, "resolution": resolution, "fabric": fabric,
-           "configs": {solver: list(c[0]) for solver, c in plan.configs.items()},
+           "configs": {solver: [list(x) for x in fingerprint_configs(c)]
+                       for solver, c in plan.configs.items()},
            "reference_start": plan.start_for(scene_name), "frames": fingerprint_frames(scene_name)}
     return bytes(cached(key, compute)["digest"]).decode()
 
