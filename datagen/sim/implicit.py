@@ -106,7 +106,7 @@ class ImplicitSolver(ClothSolver):
         self._pins(s1)
         self._collide(collider, s0, s1, h)
         self._cloth_collisions(h, s0, s1)
-        self._limit_after_contact(collider)
+        self._limit_after_contact(collider, s0, s1, h)
         self._run("integration", K.finish, self.x, self.xp, self.v, self.w, self.contact_n,
                   self.contact_v, h)
 

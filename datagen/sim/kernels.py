@@ -1403,6 +1403,7 @@ def xpbd_frame(
                     s_min_rest,
                 )
         if ti.static(use_collision or use_layers):
+            moved = False
             if n_sets > 0:
                 n_sp = springs.shape[0]
                 for sweep in range(AFTER_CONTACT_SWEEPS):
@@ -1412,8 +1413,20 @@ def xpbd_frame(
                         worst = ti.max(
                             worst, limit_after_contact_one(e, x, w, springs, limit, contact_n)
                         )
+                    if worst > 0.0:
+                        moved = True
                     if worst < AFTER_CONTACT_TOLERANCE:
                         break
+            if ti.static(use_collision):
+                # Contact again, without friction, for what the limit moved into the body
+                # (see ClothSolver._limit_after_contact).
+                if moved:
+                    for i in range(n):
+                        collide_one(
+                            i, x, xp, w, tri, faces, fadj, bs0, bs1, ns1, ns1, 0.0, 1.0,
+                            thickness, friction, recover, 2.0 * cell, contact_n, contact_v, h,
+                            False,
+                        )
         for i in range(n):
             finish_one(i, x, xp, v, w, contact_n, contact_v, h)
 

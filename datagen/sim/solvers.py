@@ -187,20 +187,25 @@ class ClothSolver:
                 break
         self.costs["strain_limit"] += time.perf_counter() - t
 
-    def _limit_after_contact(self, collider) -> None:
+    def _limit_after_contact(self, collider, s0: float, s1: float, h: float) -> None:
         """The strain limit's sweeps after contact, along the body (see
-        kernels.limit_after_contact_one): every solver ends its substep with them."""
-        contact = (collider is not None and self.effects.body_collision) or self.use_layers
-        if not (self.n_limited and contact):
+        kernels.limit_after_contact_one), then contact again, without friction, for the
+        vertices they moved into the body: every solver ends its substep with them."""
+        body = collider is not None and self.effects.body_collision
+        if not (self.n_limited and (body or self.use_layers)):
             return
         t = time.perf_counter()
+        moved = False
         for sweep in range(K.AFTER_CONTACT_SWEEPS):
             worst = K.limit_after_contact(self.x, self.w, self.limited, self.limited_length,
                                           self.contact_n, sweep % 2)
             self.launches["strain_limit"] += 1
+            moved = moved or worst > 0.0
             if worst < K.AFTER_CONTACT_TOLERANCE:
                 break
         self.costs["strain_limit"] += time.perf_counter() - t
+        if body and moved:
+            self._collide_body(collider, s0, s1, h, False)
 
     # -- cloth-cloth collision ---------------------------------------------------------------
     def _init_self_collision(self) -> None:
@@ -354,11 +359,13 @@ class ClothSolver:
         self._run("body_collision", K.clear_contacts, self.contact_n, self.contact_v)
         if collider is None or not self.effects.body_collision:
             return
-        recover = self.settings.recover_speed * h
         # Vertices that track no triangle look for one at every substep (cheap: they are far
         # from the body, in empty cells), so fast limbs and falling cloth are caught in time.
         self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s1, True,
                   self.guard, self.odo + s1 * collider.max_speed)
+        self._collide_body(collider, s0, s1, h, self.effects.friction)
+
+    def _collide_body(self, collider, s0: float, s1: float, h: float, friction: bool) -> None:
         self._run(
             "body_collision",
             K.collide_body,
@@ -376,12 +383,12 @@ class ClothSolver:
             s1,
             self.thickness,
             self.friction,
-            recover,
+            self.settings.recover_speed * h,
             2.0 * collider.cell,
             self.contact_n,
             self.contact_v,
             h,
-            self.effects.friction,
+            friction,
         )
 
     def search(self, collider, s: float) -> None:
@@ -701,7 +708,7 @@ class XPBDSolver(ClothSolver):
             self._run("pins", K.apply_tethers, self.x, self.tethers, self.tether_len)
         self._collide(collider, s0, s1, h)
         self._cloth_collisions(h, s0, s1)
-        self._limit_after_contact(collider)
+        self._limit_after_contact(collider, s0, s1, h)
         self._run(
             "integration",
             K.finish,
@@ -828,7 +835,7 @@ class ExplicitSolver(ClothSolver):
         self._pins(s1)
         self._collide(collider, s0, s1, h)
         self._cloth_collisions(h, s0, s1)
-        self._limit_after_contact(collider)
+        self._limit_after_contact(collider, s0, s1, h)
         self._run(
             "integration",
             K.finish_contacts,
