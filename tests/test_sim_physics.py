@@ -765,3 +765,35 @@ def test_cloth_moving_with_the_body_is_not_searched_again_within_the_frame():
         searched_at.append(float(guard.to_numpy()[0, K.G_TIME]))
     assert tri.to_numpy()[0] == -1
     assert searched_at == [0.0] * 6  # searched once, at the frame's start
+
+
+def test_the_strain_limit_after_contact_leaves_no_vertex_it_pulled_into_the_body():
+    """A 3x3 cotton patch over a still plane (z = 0): its outer columns pinned 1 cm inside the
+    body and twice as far apart as the patch is wide, its middle column 6 mm above the plane
+    (free: beyond the 4 mm thickness, so not in contact). Every spring is past its limit, and
+    the limit's sweeps pull the middle column towards the pins' chord, 1 cm into the body. The
+    substep ends with contact again (ClothSolver._limit_after_contact): the middle column is
+    back at the thickness, outside. Without it, the middle column ended 1 cm deep, and at the
+    next substep contact pushed it out: the back and forth ran the fast kick's trousers away
+    (docs/simulator.md)."""
+    sheet = grid_sheet(2, 0.02, 0.0)
+    side = np.abs(sheet.vertices[:, 0]) > 0.005
+    sheet.pinned = np.flatnonzero(side)
+    model = build_cloth_model([(sheet, FABRICS["cotton"])])
+    effects = Effects(pins=True, air_drag=False)
+    solver = make_solver("xpbd", model, effects, SolverSettings(substeps=20, iterations=4))
+    x = model.x0.copy()
+    x[side, 0] *= 2.0
+    x[side, 2] = -0.01
+    x[~side, 2] = 0.006
+    solver.set_state(x, np.zeros_like(x))
+    plane = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    collider = BodyCollider(faces, np.ones(2, bool), 4)
+    collider.set_frames(plane, plane)
+    solver.search(collider, 1.0)
+    solver.xp.from_numpy(solver.x.to_numpy())  # the substep started here
+    solver._limit_after_contact(collider, 0.0, 1.0, 1.0 / 600.0)
+    after = solver.get_state()[0]
+    assert np.all(after[~side, 2] > 0.004 - 1e-9), after[~side, 2]
+    assert np.allclose(after[side], x[side])  # pinned
