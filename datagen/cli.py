@@ -229,6 +229,9 @@ def body(
         f"wrote {out}: sequence {spec.sequence_id}, {spec.subject.gender}, action "
         f"{spec.motion.action}, {spec.motion.frames} frames; self-collision: "
         f"{sc.frames_with_contact} frames with contact, {sc.repaired_vertices} vertex repairs"
+        + (f"; a thigh overlaps the lower torso in {len(sc.groin_overlap_frames)} frames "
+           f"(up to {sc.groin_overlap_max_extent * 100:.0f} cm across, not repaired)"
+           if sc.groin_overlap_frames else "")
     )
 
 

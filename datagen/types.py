@@ -88,6 +88,12 @@ class SelfCollisionReport:
     arm_clearance_max_deg: float = 0.0  # largest abduction added to fit the arms to the torso
     arm_clearance_frames: int = 0
     thinner_retries: int = 0
+    # Frames (of `vertices`, lead-in included) where a thigh overlaps the lower torso, which the
+    # repair leaves alone (datagen.body.parts.GROIN_PAIRS): the largest overlap's extent and its
+    # depth, estimated as for self-collisions. Cloth caught there cannot be outside the body.
+    groin_overlap_frames: list[int] = field(default_factory=list)
+    groin_overlap_max_extent: float = 0.0  # metres
+    groin_overlap_max_depth: float = 0.0  # metres
 
     def as_dict(self) -> dict:
         return {
@@ -102,6 +108,9 @@ class SelfCollisionReport:
             "arm_clearance_max_deg": self.arm_clearance_max_deg,
             "arm_clearance_frames": self.arm_clearance_frames,
             "thinner_retries": self.thinner_retries,
+            "groin_overlap_frames": list(self.groin_overlap_frames),
+            "groin_overlap_max_extent": self.groin_overlap_max_extent,
+            "groin_overlap_max_depth": self.groin_overlap_max_depth,
         }
 
 

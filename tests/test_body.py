@@ -259,6 +259,32 @@ def test_full_repair_pipeline(body_model, rest):
     assert np.abs(rebuilt - v).max() < 1e-5
 
 
+def test_groin_overlap_is_reported_where_the_kicking_thigh_sinks_into_the_belly(body_model):
+    """The repair leaves thigh against pelvis alone (skeleton neighbours), but the report says
+    in which frames the skinning sinks a raised thigh into the lower torso: during a high
+    kick's extension and re-chamber, never while both feet stand or in a walk."""
+    import json
+
+    from datagen.body.sequence import build_body_sequence
+    from datagen.motion.load import motion_from_spec
+    from datagen.spec import MotionSpec, SubjectSpec
+
+    def report(action, params, frames):
+        spec = MotionSpec(action=action, params=params, frames=frames)
+        seq = build_body_sequence(SubjectSpec(gender="male"), motion_from_spec(spec, None), 0,
+                                  body_model, BodyConfig())
+        return seq.self_collision
+
+    kick = report("kick", {"height": 1.0}, 45)  # the first kick: chamber at 0.55 s, down at 1.45 s
+    frames = kick.groin_overlap_frames
+    assert frames, "a 1 m kick sinks the thigh into the belly"
+    assert min(frames) >= int(0.55 * 30) and max(frames) <= int(1.45 * 30), frames
+    assert kick.groin_overlap_max_extent > 0.10
+    assert json.loads(json.dumps(kick.as_dict()))["groin_overlap_frames"] == frames
+    walk = report("walk", {}, 45)
+    assert walk.groin_overlap_frames == [] and walk.groin_overlap_max_depth == 0.0
+
+
 def test_procedural_actions_are_mostly_intersection_free(body_model):
     """At default parameters, >= 95 % of 100 sampled bodies move through the procedural actions
     without body self-intersection (the figures are printed; docs/benchmarks.md records them).

@@ -122,5 +122,15 @@ SOLVABLE_PAIRS = frozenset(
     | {frozenset({"thigh_l", "thigh_r"})}
 ) - {frozenset({"upperarm_l", "collar_l"}), frozenset({"upperarm_r", "collar_r"})}
 
+# The groin: a thigh against the lower torso. They are skeleton neighbours, so the self-collision
+# repair leaves them alone, but linear blend skinning sinks the front of a strongly flexed thigh
+# centimetres into the belly (a kick's chamber, a squat); the body stage reports where
+# (SelfCollisionReport.groin_*). Triangles closer than GROIN_REST_RADIUS at rest are the skin
+# bending at the hip joint, not an overlap.
+GROIN_PAIRS: tuple[tuple[str, str], ...] = tuple(
+    (thigh, torso) for thigh in ("thigh_l", "thigh_r") for torso in ("pelvis", "spine_lower")
+)
+GROIN_REST_RADIUS = 0.08  # metres
+
 # Which part yields in a repair: the first of a pair in this order moves (both thighs share).
 MOVABLE_ORDER = ("forearm_l", "forearm_r", "upperarm_l", "upperarm_r", "thigh_l", "thigh_r")

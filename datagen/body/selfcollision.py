@@ -65,7 +65,12 @@ class SelfCollisionDetector:
         part_labels: np.ndarray,
         rest_vertices: np.ndarray,
         ignore_parts: frozenset[str] = frozenset(),
+        pairs: tuple[tuple[str, str], ...] | None = None,
+        local_radius: float = LOCAL_RADIUS,
     ) -> None:
+        """`pairs` (part names) replaces the default pairs, every two parts that are not skeleton
+        neighbours; `local_radius` is how far apart at rest two triangles must be to count."""
+        self.local_radius = local_radius
         self.faces = np.asarray(faces, dtype=np.int64)
         labels = np.asarray(part_labels)
         # A triangle belongs to the part most of its vertices belong to.
@@ -75,12 +80,19 @@ class SelfCollisionDetector:
         self.part_tris = [np.flatnonzero(self.tri_part == p) for p in range(len(PART_NAMES))]
         neighbours = part_neighbours()
         ignored = {PART_INDEX[p] for p in ignore_parts}
+        if pairs is None:
+            candidates = [
+                (a, b)
+                for a in range(len(PART_NAMES))
+                for b in range(a + 1, len(PART_NAMES))
+                if not neighbours[a, b]
+            ]
+        else:
+            candidates = [tuple(sorted((PART_INDEX[a], PART_INDEX[b]))) for a, b in pairs]
         self.pairs = [
             (a, b)
-            for a in range(len(PART_NAMES))
-            for b in range(a + 1, len(PART_NAMES))
-            if not neighbours[a, b]
-            and a not in ignored
+            for a, b in candidates
+            if a not in ignored
             and b not in ignored
             and len(self.part_tris[a])
             and len(self.part_tris[b])
@@ -165,7 +177,7 @@ class SelfCollisionDetector:
         rows, cols = rows[close], cols[close]
         far_at_rest = (
             np.linalg.norm(self.rest_centroid[ia[rows]] - self.rest_centroid[ib[cols]], axis=1)
-            > LOCAL_RADIUS
+            > self.local_radius
         )
         rows, cols = rows[far_at_rest], cols[far_at_rest]
         return np.stack([fa[rows], ia[rows], ib[cols]], axis=1)

@@ -8,7 +8,7 @@ import numpy as np
 
 from datagen.body.arm_clearance import clear_arms
 from datagen.body.base import BodyModel
-from datagen.body.parts import PART_INDEX
+from datagen.body.parts import GROIN_PAIRS, GROIN_REST_RADIUS, PART_INDEX
 from datagen.body.selfcollision import SelfCollisionDetector, classify, repair_contact
 from datagen.errors import InputError, RejectedSequence
 from datagen.motion.timing import add_lead_in, check_root_speed, retarget_root
@@ -107,6 +107,21 @@ def repair_self_collisions(
     return rep_f, rep_v, rep_o, report
 
 
+def _report_groin_overlap(vertices: np.ndarray, rest: RestBody,
+                          report: SelfCollisionReport) -> None:
+    """Fill the report's groin fields from the final (repaired) vertices."""
+    key = ("groin", rest.model, rest.faces.shape)
+    det = _DETECTORS.get(key)
+    if det is None:
+        det = SelfCollisionDetector(rest.faces, rest.part_labels, rest.vertices,
+                                    pairs=GROIN_PAIRS, local_radius=GROIN_REST_RADIUS)
+        _DETECTORS[key] = det
+    contacts = det.detect(vertices)
+    report.groin_overlap_frames = sorted({int(c.frame) for c in contacts})
+    report.groin_overlap_max_extent = max((c.extent for c in contacts), default=0.0)
+    report.groin_overlap_max_depth = max((c.depth for c in contacts), default=0.0)
+
+
 def build_body_sequence(
     subject: SubjectSpec,
     motion: Motion,
@@ -153,6 +168,7 @@ def build_body_sequence(
         except RejectedSequence as exc:
             last_error = exc
             continue
+        _report_groin_overlap(vertices, rest, report)
         report.arm_clearance_max_deg = float(np.degrees(added.max(initial=0.0)))
         report.arm_clearance_frames = int(np.count_nonzero(added.max(axis=0) > 0))
         report.thinner_retries = attempt
