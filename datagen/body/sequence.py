@@ -9,7 +9,12 @@ import numpy as np
 from datagen.body.arm_clearance import clear_arms
 from datagen.body.base import BodyModel
 from datagen.body.parts import GROIN_PAIRS, GROIN_REST_RADIUS, PART_INDEX
-from datagen.body.selfcollision import SelfCollisionDetector, classify, repair_contact
+from datagen.body.selfcollision import (
+    LOCAL_RADIUS,
+    SelfCollisionDetector,
+    classify,
+    repair_contact,
+)
 from datagen.errors import InputError, RejectedSequence
 from datagen.motion.timing import add_lead_in, check_root_speed, retarget_root
 from datagen.recipe import BodyConfig
@@ -38,13 +43,16 @@ def shape_vector(model: BodyModel, subject: SubjectSpec) -> np.ndarray:
     return out
 
 
-def _detector(rest: RestBody, ignore: frozenset[str]) -> SelfCollisionDetector:
+def _detector(rest: RestBody, ignore: frozenset[str] = frozenset(),
+              pairs: tuple[tuple[str, str], ...] | None = None,
+              local_radius: float = LOCAL_RADIUS) -> SelfCollisionDetector:
     # Keyed by topology; rest positions only decide which triangles are "local" to each other,
     # which the shape barely changes, so one detector serves all subjects of a model.
-    key = (rest.model, rest.faces.shape, ignore)
+    key = (rest.model, rest.faces.shape, ignore, pairs, local_radius)
     det = _DETECTORS.get(key)
     if det is None:
-        det = SelfCollisionDetector(rest.faces, rest.part_labels, rest.vertices, ignore)
+        det = SelfCollisionDetector(rest.faces, rest.part_labels, rest.vertices, ignore,
+                                    pairs=pairs, local_radius=local_radius)
         _DETECTORS[key] = det
     return det
 
@@ -110,12 +118,7 @@ def repair_self_collisions(
 def _report_groin_overlap(vertices: np.ndarray, rest: RestBody,
                           report: SelfCollisionReport) -> None:
     """Fill the report's groin fields from the final (repaired) vertices."""
-    key = ("groin", rest.model, rest.faces.shape)
-    det = _DETECTORS.get(key)
-    if det is None:
-        det = SelfCollisionDetector(rest.faces, rest.part_labels, rest.vertices,
-                                    pairs=GROIN_PAIRS, local_radius=GROIN_REST_RADIUS)
-        _DETECTORS[key] = det
+    det = _detector(rest, pairs=GROIN_PAIRS, local_radius=GROIN_REST_RADIUS)
     contacts = det.detect(vertices)
     report.groin_overlap_frames = sorted({int(c.frame) for c in contacts})
     report.groin_overlap_max_extent = max((c.extent for c in contacts), default=0.0)
