@@ -797,3 +797,51 @@ def test_the_strain_limit_after_contact_leaves_no_vertex_it_pulled_into_the_body
     after = solver.get_state()[0]
     assert np.all(after[~side, 2] > 0.004 - 1e-9), after[~side, 2]
     assert np.allclose(after[side], x[side])  # pinned
+
+
+def test_the_limit_after_contact_on_moved_vertices_ends_where_full_sweeps_would_stop():
+    """The xpbd solver's limit after contact sweeps every spring once, and then only the
+    springs at vertices the previous sweep moved (kernels.limit_after_contact_active). A sheet
+    with a fifth of its vertices pulled up to 4 mm out of place (edges 1 cm): it must stop
+    only when no spring of the whole sheet, visited or not, is more than the tolerance past its
+    limit, as full sweeps do; the fabric it did not touch must not move; and it must leave its
+    flags clear for the next substep (a flag left set would keep that vertex off the lists)."""
+    import datagen.sim.kernels as K
+
+    sheet = grid_sheet(20, 0.2, 0.0)
+    model = build_cloth_model([(sheet, FABRICS["cotton"])])
+    solver = make_solver("xpbd", model, Effects(pins=False, air_drag=False),
+                         SolverSettings(substeps=20, iterations=4))
+    rng = np.random.default_rng(7)
+    x = model.x0.copy()
+    pulled = rng.random(len(x)) < 0.2
+    x[pulled] += rng.uniform(-0.004, 0.004, (int(pulled.sum()), 3))
+    solver.set_state(x, np.zeros_like(x))
+    x = solver.get_state()[0].astype(np.float64)  # as stored
+    lengths = solver.f_limit.to_numpy()
+    pairs = solver.f_springs.to_numpy()
+
+    def worst_excess(pos):
+        d = np.linalg.norm(pos[pairs[:, 1]] - pos[pairs[:, 0]], axis=1)
+        return float((d / lengths - 1.0).max())
+
+    assert worst_excess(x) > 0.2  # far past the limit where pulled
+    n_moved = K.limit_after_contact_listed(solver.x, solver.w, solver.f_springs, solver.f_limit,
+                                           solver.contact_n, solver.limit_adj,
+                                           solver.limit_lists)
+    after = solver.get_state()[0].astype(np.float64)
+    assert worst_excess(after) < K.AFTER_CONTACT_TOLERANCE
+    lists = solver.limit_lists.to_numpy()
+    n = len(x)
+    moved = np.zeros(n, bool)
+    moved[lists[4 * n: 4 * n + n_moved]] = True
+    assert np.array_equal(np.flatnonzero(lists[n:2 * n]), np.flatnonzero(moved))
+    assert np.array_equal(after[~moved], x[~moved])  # untouched where nothing moved
+    assert 0 < n_moved < n
+    assert not lists[:n].any()  # no vertex left queued
+    c = solver._placeholder_collider()
+    K.collide_listed(solver.x, solver.xp, solver.w, solver.tri, c.faces, c.fadj, c.b0, c.b1,
+                     c.n0, c.n1, 0.0, 1.0, solver.thickness, solver.friction, 0.0, 1.0,
+                     solver.contact_n, solver.contact_v, 1.0 / 600.0, solver.limit_lists, n_moved,
+                     False)
+    assert not solver.limit_lists.to_numpy()[: 2 * n].any()  # the moved flags cleared too

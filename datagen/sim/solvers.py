@@ -440,6 +440,38 @@ class XPBDSolver(ClothSolver):
         if not self.gauss_seidel:
             self._build_jacobi_adjacency()
         self._build_fused()
+        self._init_active_limit()
+
+    def _init_active_limit(self) -> None:
+        """The arrays of kernels.limit_after_contact_active, over the fused springs (seams and
+        elastics have no limit, so it never moves them): each vertex's springs (CSR offsets,
+        then spring indices) and its vertex lists (queued flags, moved flags, the queue's two
+        halves, the moved vertices: 5 n entries)."""
+        pairs = self.f_springs.to_numpy()[: sum(s.count for s in self.sets.values())]
+        owner = pairs.T.ravel()  # both ends
+        spring = np.tile(np.arange(len(pairs), dtype=np.int32), 2)
+        ptr = np.zeros(self.n + 1, np.int64)
+        np.add.at(ptr, owner + 1, 1)
+        self.limit_adj = _nd(ti.i32, np.concatenate(
+            [np.cumsum(ptr), spring[np.argsort(owner, kind="stable")]]).astype(np.int32))
+        self.limit_lists = _nd(ti.i32, np.zeros(5 * self.n, np.int32))
+
+    def _limit_after_contact(self, collider, s0: float, s1: float, h: float) -> None:
+        """As ClothSolver's, with the sweeps after the first on the springs around what moved
+        (kernels.limit_after_contact_active), and contact again on the vertices they moved."""
+        body = collider is not None and self.effects.body_collision
+        if not (self.f_nsets and (body or self.use_layers)):
+            return
+        t = time.perf_counter()
+        n_moved = K.limit_after_contact_listed(self.x, self.w, self.f_springs, self.f_limit,
+                                               self.contact_n, self.limit_adj, self.limit_lists)
+        self.launches["strain_limit"] += 1
+        self.costs["strain_limit"] += time.perf_counter() - t
+        c = collider if body else self._placeholder_collider()
+        self._run("body_collision", K.collide_listed, self.x, self.xp, self.w, self.tri,
+                  c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, s0, s1, self.thickness,
+                  self.friction, self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n,
+                  self.contact_v, h, self.limit_lists, n_moved, body)
 
     def _build_fused(self) -> None:
         """All spring sets in one array, in the order the per-effect kernels visit them."""
@@ -572,6 +604,7 @@ class XPBDSolver(ClothSolver):
             self.layer_w, self.layer_tri, self.layer_guard, lc.relative_travel,
             lc.faces, lc.fadj, lc.b0, lc.b1, self.layer_nrm, self.layer_react, self.layer_count,
             lc.starts, lc.items,
+            self.limit_adj, self.limit_lists,
             self.P, self.Q,
             e.gravity, e.air_drag or e.wind, use_collision, e.friction, self.use_layers,
             self.use_self,
