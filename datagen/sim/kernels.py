@@ -364,15 +364,29 @@ def limit_after_contact(
 
 
 @ti.func
-def _enqueue(v: ti.i32, lists: I1, flags: ti.i32, items: ti.i32, count: ti.i32) -> ti.i32:
-    """Append vertex v to the list at lists[items:] unless its flag (lists[flags + v]) says it
-    is there; the new count."""
-    out = count
+def _enqueue(v: ti.i32, lists: I1, flags: ti.i32, items: ti.i32, counter: ti.i32):
+    """Append vertex v to the list at lists[items:], whose length is lists[counter], unless its
+    flag (lists[flags + v]) says it is there."""
     if lists[flags + v] == 0:
         lists[flags + v] = 1
-        lists[items + count] = v
-        out = count + 1
-    return out
+        lists[items + lists[counter]] = v
+        lists[counter] += 1
+
+
+@ti.func
+def _limit_and_enqueue(
+    e: ti.i32, x: V3, w: F1, springs: I2, limit: F1, contact_n: V3, lists: I1, items: ti.i32
+) -> REAL:
+    """limit_after_contact_one on spring e; ends it moved join the next sweep's list (at
+    `items`) and the list of moved vertices. Returns the excess it met."""
+    nv = x.shape[0]
+    excess = limit_after_contact_one(e, x, w, springs, limit, contact_n)
+    if excess > 0.0:
+        for end in ti.static(range(2)):
+            v = springs[e][end]
+            _enqueue(v, lists, 0, items, 5 * nv)
+            _enqueue(v, lists, nv, 4 * nv, 5 * nv + 1)
+    return excess
 
 
 @ti.func
@@ -386,56 +400,44 @@ def limit_after_contact_active(
     limit, or shortened to it (and then its ends moved). So a later sweep needs only the springs
     around the moved vertices: it reaches the state and the stopping test of a full sweep for
     the cost of the springs contact left stretched instead of all of them.
-    `adj`: each vertex's springs (CSR: n + 1 offsets, then spring indices). `lists` (see
-    XPBDSolver._init_active_limit): queued flags, moved flags, the queue's two halves (this
-    sweep's vertices and the next's), and every vertex the limit moved, for contact afterwards.
-    Returns how many moved; the caller clears their flags."""
+    `adj`: each vertex's springs (CSR: n + 1 offsets, then spring indices). `lists` (5 n + 2,
+    see XPBDSolver._init_active_limit): queued flags, moved flags, the queue's two halves (this
+    sweep's vertices and the next's), the vertices the limit moved (for contact afterwards),
+    and two counters (the next sweep's list, the moved list). Returns how many moved; the
+    caller clears their flags (moved_by_limit)."""
     nv = x.shape[0]
-    n_sp = springs.shape[0]
-    moved_flags = nv
-    queue = 2 * nv
-    moved = 4 * nv
-    n_moved = 0
-    cur = queue
-    cur_len = 0
+    lists[5 * nv] = 0
+    lists[5 * nv + 1] = 0
+    cur = 2 * nv
     worst = 0.0
-    for m in range(n_sp):
-        excess = limit_after_contact_one(m, x, w, springs, limit, contact_n)
-        if excess > 0.0:
-            worst = ti.max(worst, excess)
-            for end in ti.static(range(2)):
-                v = springs[m][end]
-                cur_len = _enqueue(v, lists, 0, cur, cur_len)
-                n_moved = _enqueue(v, lists, moved_flags, moved, n_moved)
+    for e in range(springs.shape[0]):
+        worst = ti.max(worst, _limit_and_enqueue(e, x, w, springs, limit, contact_n, lists, cur))
+    cur_len = lists[5 * nv]
     sweep = 1
     while worst >= AFTER_CONTACT_TOLERANCE and sweep < AFTER_CONTACT_SWEEPS and cur_len > 0:
         worst = 0.0
-        nxt = 2 * queue + nv - cur  # the other half
-        nxt_len = 0
+        nxt = 5 * nv - cur  # the other half
+        lists[5 * nv] = 0
         for q in range(cur_len):
             v = lists[cur + sweep_order(q, cur_len, sweep % 2)]
             lists[v] = 0
             for a in range(adj[v], adj[v + 1]):
                 e = adj[nv + 1 + a]
-                excess = limit_after_contact_one(e, x, w, springs, limit, contact_n)
-                if excess > 0.0:
-                    worst = ti.max(worst, excess)
-                    for end in ti.static(range(2)):
-                        u = springs[e][end]
-                        nxt_len = _enqueue(u, lists, 0, nxt, nxt_len)
-                        n_moved = _enqueue(u, lists, moved_flags, moved, n_moved)
+                worst = ti.max(
+                    worst, _limit_and_enqueue(e, x, w, springs, limit, contact_n, lists, nxt)
+                )
         cur = nxt
-        cur_len = nxt_len
+        cur_len = lists[5 * nv]
         sweep += 1
     for q in range(cur_len):  # left queued when the tolerance or the cap stopped the sweeps
         lists[lists[cur + q]] = 0
-    return n_moved
+    return lists[5 * nv + 1]
 
 
 @ti.func
-def moved_by_limit(q: ti.i32, lists: I1) -> ti.i32:
-    """The q-th vertex limit_after_contact_active moved, its flag cleared."""
-    nv = lists.shape[0] // 5
+def moved_by_limit(q: ti.i32, nv: ti.i32, lists: I1) -> ti.i32:
+    """The q-th vertex limit_after_contact_active moved (of nv cloth vertices), its flag
+    cleared."""
     i = lists[4 * nv + q]
     lists[nv + i] = 0
     return i
@@ -1279,7 +1281,7 @@ def collide_listed(
     their flags."""
     ti.loop_config(serialize=True)
     for q in range(n_moved):
-        i = moved_by_limit(q, lists)
+        i = moved_by_limit(q, x.shape[0], lists)
         if ti.static(use_collision):
             collide_one(i, x, xp, w, tri, faces, fadj, b0, b1, n0, n1, s0, s1, thickness,
                         friction, recover, release, contact_n, contact_v, h, False)
@@ -1513,7 +1515,7 @@ def xpbd_frame(
             if n_sets > 0:
                 n_moved = limit_after_contact_active(x, w, springs, limit, contact_n, adj, lists)
             for q in range(n_moved):
-                i = moved_by_limit(q, lists)
+                i = moved_by_limit(q, n, lists)
                 if ti.static(use_collision):
                     # Contact again, without friction, for what the limit moved into the body
                     # (see ClothSolver._limit_after_contact).

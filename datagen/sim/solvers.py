@@ -446,7 +446,7 @@ class XPBDSolver(ClothSolver):
         """The arrays of kernels.limit_after_contact_active, over the fused springs (seams and
         elastics have no limit, so it never moves them): each vertex's springs (CSR offsets,
         then spring indices) and its vertex lists (queued flags, moved flags, the queue's two
-        halves, the moved vertices: 5 n entries)."""
+        halves, the moved vertices: 5 n entries, and two counters)."""
         pairs = self.f_springs.to_numpy()[: sum(s.count for s in self.sets.values())]
         owner = pairs.T.ravel()  # both ends
         spring = np.tile(np.arange(len(pairs), dtype=np.int32), 2)
@@ -454,7 +454,7 @@ class XPBDSolver(ClothSolver):
         np.add.at(ptr, owner + 1, 1)
         self.limit_adj = _nd(ti.i32, np.concatenate(
             [np.cumsum(ptr), spring[np.argsort(owner, kind="stable")]]).astype(np.int32))
-        self.limit_lists = _nd(ti.i32, np.zeros(5 * self.n, np.int32))
+        self.limit_lists = _nd(ti.i32, np.zeros(5 * self.n + 2, np.int32))
 
     def _limit_after_contact(self, collider, s0: float, s1: float, h: float) -> None:
         """As ClothSolver's, with the sweeps after the first on the springs around what moved
