@@ -1362,7 +1362,8 @@ def xpbd_frame(
 ):
     """All substeps of one frame of the XPBD solver in one serial launch: the same per-element
     functions, in the same order, as the per-effect kernels (which profiling runs use), without
-    a Python round trip per kernel."""
+    a Python round trip per kernel. Its 64 non-template arguments are Taichi's limit on x64: a
+    new array has to share one with another (as `adj` and `lists` pack several)."""
     h = P[P_H]
     omega = P[P_OMEGA]
     recover = P[P_RECOVER]
