@@ -72,6 +72,14 @@ def _nd(dtype, data: np.ndarray):
     return arr
 
 
+def _vertex_lists(owner: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Entries grouped by the vertex that owns them (CSR): per vertex its range in the order
+    (n + 1 offsets), and the order (entry indices, stable within a vertex)."""
+    ptr = np.zeros(n + 1, np.int64)
+    np.add.at(ptr, owner + 1, 1)
+    return np.cumsum(ptr).astype(np.int32), np.argsort(owner, kind="stable")
+
+
 class _SpringSet:
     def __init__(self, model: ClothModel, select: np.ndarray) -> None:
         self.count = int(select.sum())
@@ -447,13 +455,10 @@ class XPBDSolver(ClothSolver):
         elastics have no limit, so it never moves them): each vertex's springs (CSR offsets,
         then spring indices) and its vertex lists (queued flags, moved flags, the queue's two
         halves, the moved vertices: 5 n entries, and two counters)."""
-        pairs = self.f_springs.to_numpy()[: sum(s.count for s in self.sets.values())]
-        owner = pairs.T.ravel()  # both ends
+        pairs = self.f_springs.to_numpy()[: self.f_count]
+        ptr, order = _vertex_lists(pairs.T.ravel(), self.n)  # both ends
         spring = np.tile(np.arange(len(pairs), dtype=np.int32), 2)
-        ptr = np.zeros(self.n + 1, np.int64)
-        np.add.at(ptr, owner + 1, 1)
-        self.limit_adj = _nd(ti.i32, np.concatenate(
-            [np.cumsum(ptr), spring[np.argsort(owner, kind="stable")]]).astype(np.int32))
+        self.limit_adj = _nd(ti.i32, np.concatenate([ptr, spring[order]]).astype(np.int32))
         self.limit_lists = _nd(ti.i32, np.zeros(5 * self.n + 2, np.int32))
 
     def _limit_after_contact(self, collider, s0: float, s1: float, h: float) -> None:
@@ -497,6 +502,7 @@ class XPBDSolver(ClothSolver):
             self.f_lam = _nd(REAL, np.zeros(len(springs), NP_REAL))
             self.f_ranges = _nd(ti.math.ivec2, np.asarray(ranges, np.int32))
             self.f_nsets = len(ranges)
+            self.f_count = len(springs)
         else:
             self.f_springs = _nd(ti.math.ivec2, np.zeros((1, 2), np.int32))
             self.f_rest = self.f_limit = self.f_comp_t = self.f_comp_c = self.f_beta = _nd(
@@ -505,6 +511,7 @@ class XPBDSolver(ClothSolver):
             self.f_lam = _nd(REAL, np.zeros(1, NP_REAL))
             self.f_ranges = _nd(ti.math.ivec2, np.zeros((1, 2), np.int32))
             self.f_nsets = 0
+            self.f_count = 0
         if not self.n_bends:
             self.bends = _nd(ti.math.ivec4, np.zeros((1, 4), np.int32))
             self.kw = _nd(VEC4, np.zeros((1, 4), NP_REAL))
@@ -652,23 +659,14 @@ class XPBDSolver(ClothSolver):
         for name, s in self.sets.items():
             sp = self.model.springs[s.index]
             ref = np.concatenate([-(np.arange(len(sp)) + 1), np.arange(len(sp))])
-            owner = np.concatenate([sp[:, 0], sp[:, 1]])
-            order = np.argsort(owner, kind="stable")
-            ptr = np.zeros(self.n + 1, np.int32)
-            np.add.at(ptr, owner + 1, 1)
-            self.jacobi[name] = (
-                _nd(ti.i32, np.cumsum(ptr).astype(np.int32)),
-                _nd(ti.i32, ref[order].astype(np.int32)),
-            )
+            ptr, order = _vertex_lists(np.concatenate([sp[:, 0], sp[:, 1]]), self.n)
+            self.jacobi[name] = (_nd(ti.i32, ptr), _nd(ti.i32, ref[order].astype(np.int32)))
         if self.n_bends:
-            owner = self.model.bends.ravel()
             slot = np.tile(np.arange(4), self.n_bends)
             bref = np.repeat(np.arange(self.n_bends), 4)
-            order = np.argsort(owner, kind="stable")
-            ptr = np.zeros(self.n + 1, np.int32)
-            np.add.at(ptr, owner + 1, 1)
+            ptr, order = _vertex_lists(self.model.bends.ravel(), self.n)
             self.jacobi_b = (
-                _nd(ti.i32, np.cumsum(ptr).astype(np.int32)),
+                _nd(ti.i32, ptr),
                 _nd(ti.i32, bref[order].astype(np.int32)),
                 _nd(ti.i32, slot[order].astype(np.int32)),
             )
