@@ -62,6 +62,9 @@ class BodyCollider:
         self.normals = normals
         self.faces_np = np.asarray(faces, dtype=np.int32)
         self.mask_np = np.asarray(face_mask, dtype=bool)
+        # The body vertices of the colliding faces: the grid spans them (indexing every face
+        # corner of a 27k-face body each frame cost a walking t-shirt 8 ms a frame).
+        self.used_vertices = np.unique(self.faces_np[self.mask_np])
         self.n_vertices = n_vertices
         self.cell = cell
         self.faces = ti.ndarray(ti.math.ivec3, len(self.faces_np))
@@ -127,10 +130,9 @@ class BodyCollider:
 
     def _build_grid(self) -> None:
         self.grid_tag = next(_GRID_TAGS)
-        used = self.faces_np[self.mask_np]
-        pts = np.concatenate([self.v0_np[used.ravel()], self.v1_np[used.ravel()]])
-        lo = pts.min(axis=0) - self.cell
-        hi = pts.max(axis=0) + self.cell
+        p0, p1 = self.v0_np[self.used_vertices], self.v1_np[self.used_vertices]
+        lo = np.minimum(p0.min(axis=0), p1.min(axis=0)) - self.cell
+        hi = np.maximum(p0.max(axis=0), p1.max(axis=0)) + self.cell
         dims = np.maximum(np.ceil((hi - lo) / self.cell).astype(np.int64), 1)
         n_cells = int(np.prod(dims))
         if n_cells + 1 > self._n_cells_alloc:

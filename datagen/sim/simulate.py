@@ -259,6 +259,22 @@ class _Simulation:
         self.refine_rest = 0  # frames left before strain refinement is tried again
         self.last_share = 0.0  # the previous frame's over-strained share (while resting)
         self.frame_substeps: list[int] = []
+        # The state last read from a solver, until that solver's state changes: a frame reads
+        # it once (its guards) instead of again for the strain check, the output and the
+        # next frame's start (each read is a device copy and a float64 conversion).
+        self._known: tuple[object, np.ndarray, np.ndarray] | None = None
+
+    def _state(self, solver) -> tuple[np.ndarray, np.ndarray]:
+        known = self._known
+        if known is None or known[0] is not solver:
+            x, v = solver.get_state()
+            x.flags.writeable = v.flags.writeable = False  # shared by the readers above
+            known = self._known = (solver, x, v)
+        return known[1], known[2]
+
+    def _set_state(self, solver, x: np.ndarray, v: np.ndarray) -> None:
+        solver.set_state(x, v)
+        self._known = None  # stored in the solver's precision: read it back when needed
 
     def _normals(self, f: int) -> np.ndarray:
         n = self.normals_cache.get(f)
@@ -310,8 +326,9 @@ class _Simulation:
             # searches they follow their triangles and untracked ones are searched every substep.
             solver.search(self.collider, 1.0)
         h = 1.0 / self.fps / solver.settings.substeps
+        self._known = None
         solver.advance_frame(self.collider, solver.settings.substeps, h, profile)
-        x, v = solver.get_state()
+        x, v = self._state(solver)
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
             return "non-finite positions"
         speed = float(np.linalg.norm(v, axis=1).max())
@@ -340,8 +357,8 @@ class _Simulation:
             # would carry its straps down the slope of the trapezius.
             self._advance(0, 0, step, lead_in, refine=False)
             step += 1
-            x, v = self.solver.get_state()
-            self.solver.set_state(x, np.zeros_like(v))
+            x, v = self._state(self.solver)
+            self._set_state(self.solver, x, np.zeros_like(v))
         if lead_in == 0:
             self._record(0, outputs, qa_rows)
         for f0 in range(n_body - 1):
@@ -366,7 +383,7 @@ class _Simulation:
         help little where the fourfold one helps a lot: a leather trouser leg swung in a dance
         went from 2.5 % of its edges over the bound to 0.06 % at 4x.)"""
         solver = self.solver
-        x0, v0 = solver.get_state()
+        x0, v0 = self._state(solver)
         tracking0 = solver.get_tracking()
         every = self.options.profile_every
         search = step % self.options.search_every == 0
@@ -414,23 +431,23 @@ class _Simulation:
             if sub not in self.solvers:
                 self.solvers[sub] = self._solver(sub)
             current = self.solvers[sub]
-            current.set_state(x0, v0)
+            self._set_state(current, x0, v0)
             current.set_tracking(tracking0)
             reason = self._frame(current, f0, f1, False)
         if first is not None:
             self.last_share = share
         if current is not solver:
-            x, v = current.get_state()
-            solver.set_state(x, v)
+            x, v = self._state(current)
+            self._set_state(solver, x, v)
             solver.set_tracking(current.get_tracking())
         self.frame_substeps.append(self.substeps * 2**level)
 
     def _over_strain(self, solver) -> float:
-        x, _ = solver.get_state()
+        x, _ = self._state(solver)
         return over_strain_share(self.model, x)
 
     def _record(self, body_frame: int, outputs, qa_rows) -> None:
-        x, v = self.solver.get_state()
+        x, v = self._state(self.solver)
         for g, (lo, hi) in zip(self.garments, self.model.garment_ranges, strict=True):
             outputs[g.name].append(x[lo:hi].astype(np.float32))
         sd = None
