@@ -44,21 +44,23 @@ BLENDER_CONVERGED = 40
 def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
     sub, it = QUALITY_PRESETS["xpbd"]["default"]
     timed_scene = build_scene(scene_name, fabric, resolution, frames=RATE_FRAMES)
-    ours = run_ours(timed_scene, "xpbd", sub, it)
+    ours = run_ours(timed_scene, "xpbd", sub, it, effects=peer.PEER_EFFECTS)
+    own = run_ours(timed_scene, "xpbd", sub, it)  # the scene's own effects (auto)
     blender = peer.run_blender(timed_scene, BLENDER_QUALITY)
     short = build_scene(scene_name, fabric, resolution, frames=ERROR_FRAMES)
     ref = run_worker(scene_name, fabric, resolution, "implicit", REF_SUBSTEPS, 20, True,
-                     ERROR_FRAMES)["positions"]
+                     ERROR_FRAMES, effects=peer.PEER_EFFECTS)["positions"]
     half = run_worker(scene_name, fabric, resolution, "implicit", REF_SUBSTEPS // 2, 20, True,
-                      ERROR_FRAMES)["positions"]
+                      ERROR_FRAMES, effects=peer.PEER_EFFECTS)["positions"]
     twin = run_worker(scene_name, fabric, resolution, "implicit", REF_SUBSTEPS, 20, True,
-                      ERROR_FRAMES, TWIN_METRES)["positions"]
+                      ERROR_FRAMES, TWIN_METRES, effects=peer.PEER_EFFECTS)["positions"]
     h = predictable_frames(ref, twin)
     b_conv = peer.run_blender(short, BLENDER_CONVERGED).positions
     n = ERROR_FRAMES + 1
     row = {
         "scene": f"{scene_name} {resolution}", "fabric": fabric, "vertices": short.n_vertices,
         "ours_s_per_sim_s": ours.seconds_per_simulated_second,
+        "own_s_per_sim_s": own.seconds_per_simulated_second,
         "blender_s_per_sim_s": blender.seconds_per_simulated_second,
         "horizon": h,
         "ours_err_mm": 1000 * rms_distance(ours.positions[:n], ref, h),
@@ -121,18 +123,24 @@ def main(argv: list[str] | None = None) -> None:
         f"simulator's own converged run (ours: implicit, float64, {REF_SUBSTEPS} substeps; "
         f"Blender: quality {BLENDER_CONVERGED}) over the predictable horizon: the frames over "
         f"which a twin of our converged run started {TWIN_METRES * 1e6:.0f} um away stays within "
-        f"{CHAOS_MM:.0f} mm. 'Reference halving' is our reference against itself at half the "
-        "substeps (its own convergence); 'converged gap' is Blender's converged run against ours "
-        "(the model difference, not an error of either).",
+        f"{CHAOS_MM:.0f} mm. Both simulators run the same effects: ours the scene's own "
+        f"without self-collision (`--effects {peer.PEER_EFFECTS}`), which Blender's peer scene "
+        "leaves off; 'ours, own effects' times ours with the scene's own effects (the tube, "
+        "a skirt-like garment, has self-collision) for comparison. 'Reference halving' is our "
+        "reference against itself at half the substeps (its own convergence); 'converged gap' "
+        "is Blender's converged run against ours (the model difference, not an error of "
+        "either).",
         "",
-        "| scene | fabric | vertices | ours s/sim-s | Blender s/sim-s | speed ratio | horizon "
-        "(frames) | our error mm | Blender error mm | reference halving mm | converged gap mm |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| scene | fabric | vertices | ours s/sim-s | Blender s/sim-s | speed ratio | ours, own "
+        "effects s/sim-s | horizon (frames) | our error mm | Blender error mm | reference "
+        "halving mm | converged gap mm |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['scene']} | {r['fabric']} | {r['vertices']} | {r['ours_s_per_sim_s']:.2f} | "
-            f"{r['blender_s_per_sim_s']:.2f} | {r['speedup']:.1f}x | {r['horizon']} | "
+            f"{r['blender_s_per_sim_s']:.2f} | {r['speedup']:.1f}x | {r['own_s_per_sim_s']:.2f} | "
+            f"{r['horizon']} | "
             f"{r['ours_err_mm']:.2f} | {r['blender_err_mm']:.2f} | {r['ref_halving_mm']:.3f} | "
             f"{r['converged_gap_mm']:.1f} |"
         )

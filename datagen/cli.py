@@ -285,7 +285,8 @@ def scene_with_outfit(spec, garment: str | None, fabric: str | None, seed: int):
 @click.option("--quality", type=click.Choice(["draft", "default", "reference"]),
               default="default", show_default=True, help="Substeps/iterations preset.")
 @click.option("--effects", default="auto", show_default=True,
-              help="auto (derived from the scene), all, or a comma list of effects.")
+              help="auto (derived from the scene), all, a comma list of effects, or auto or all "
+                   "with changes (auto,-self_collision).")
 @click.option("--wind", default=None, help="Wind velocity 'x,y,z' in m/s (turns wind on).")
 @click.option("--out", required=True, type=click.Path(dir_okay=False), help="Output shard (.h5).")
 @click.option("--export-obj", type=click.Path(file_okay=False),

@@ -130,14 +130,12 @@ class SimulationConfig:
         check_range(self.settle_seconds, 0.0, 10.0, source, f"{path}.settle_seconds")
         if self.qa not in QA_POLICIES:
             raise InputError(source, f"{path}.qa", f"one of {', '.join(QA_POLICIES)}", self.qa)
-        if not isinstance(self.effects, str) or self.effects not in ("auto", "all"):
-            from datagen.sim.effects import EFFECT_NAMES
+        from datagen.sim.effects import split_effects_request
 
-            names = self.effects.split(",") if isinstance(self.effects, str) else self.effects
-            for name in names:
-                if name not in EFFECT_NAMES:
-                    raise InputError(source, f"{path}.effects",
-                                     f"auto, all, or names from {', '.join(EFFECT_NAMES)}", name)
+        try:
+            split_effects_request(self.effects)
+        except InputError as exc:
+            raise InputError(source, f"{path}.effects", exc.expected, exc.got) from None
 
 
 @dataclass(frozen=True)

@@ -97,6 +97,7 @@ def test_distributions(recipe_path):
         ("  frames: 60", "motion.frames"),
         ("  actions: {walk: 2, run: 1, spin: 1}", "motion.actions.moonwalk"),
         ("  female_fraction: 0.6666667", "subject.female_fraction"),
+        ("seed: 1234", "simulation.effects"),
     ],
 )
 def test_bad_recipes_name_the_field(tmp_path, patch, field):
@@ -105,6 +106,7 @@ def test_bad_recipes_name_the_field(tmp_path, patch, field):
         "motion.frames": "  frames: -5",
         "motion.actions.moonwalk": "  actions: {moonwalk: 1}",
         "subject.female_fraction": "  female_fraction: 1.5",
+        "simulation.effects": "seed: 1234\nsimulation: {effects: 'auto,self_collision'}",
     }[field]
     p = tmp_path / "bad.yaml"
     p.write_text(RECIPE.replace(patch, replacement))

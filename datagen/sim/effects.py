@@ -85,28 +85,41 @@ def auto_effects(scene: SceneContent) -> Effects:
     )
 
 
-def resolve_effects(request: str | tuple[str, ...] | list[str], scene: SceneContent) -> Effects:
-    """'auto' applies the rules, 'all' enables every supported effect, a list is taken as is
-    (effects the scene cannot have, like body collision without a body, are an error)."""
-    if isinstance(request, str) and request == "auto":
-        return auto_effects(scene)
-    if isinstance(request, str) and request == "all":
-        return Effects(
-            body_collision=scene.has_body,
-            friction=scene.has_body,
-            garment_collision=scene.n_garments >= 2,
-            self_collision=True,
-            elastic=scene.has_elastic,
-            pins=scene.has_pins,
-            wind=True,
-        )
+def split_effects_request(request: str | tuple[str, ...] | list[str]) -> tuple[str, list[str]]:
+    """Check an effects request's syntax: ('auto' | 'all', ['+name' | '-name', ...]) for a base
+    with changes, or ('', [name, ...]) for a plain list. Raises InputError (field 'effects',
+    no source: callers that read a file add theirs) naming the first bad item."""
     names = request.split(",") if isinstance(request, str) else list(request)
     names = [n.strip() for n in names if n.strip()]
+    if names and names[0] in ("auto", "all"):
+        bad = [n for n in names[1:] if n[:1] not in "+-" or n[1:] not in EFFECT_NAMES]
+        if bad:
+            raise InputError(
+                None, "effects",
+                f"after '{names[0]}', items '+name' or '-name' with a name among "
+                f"{', '.join(EFFECT_NAMES)}", bad[0],
+            )
+        return names[0], names[1:]
     unknown = [n for n in names if n not in EFFECT_NAMES]
-    if unknown:
+    if unknown or not names:
         raise InputError(
-            None, "effects", f"auto, all, or a list of {', '.join(EFFECT_NAMES)}", unknown[0]
+            None, "effects", f"auto, all, or a list of {', '.join(EFFECT_NAMES)}",
+            unknown[0] if unknown else request,
         )
+    return "", names
+
+
+def resolve_effects(request: str | tuple[str, ...] | list[str], scene: SceneContent) -> Effects:
+    """'auto' applies the rules, 'all' enables every supported effect, a list is taken as is
+    (effects the scene cannot have, like body collision without a body, are an error).
+    'auto' or 'all' followed by '-name' / '+name' items changes that base: 'auto,-self_collision'
+    is the scene's own effects without self-collision."""
+    base, names = split_effects_request(request)
+    if base:
+        chosen = set((auto_effects(scene) if base == "auto" else _all_effects(scene)).enabled())
+        for change in names:
+            (chosen.add if change[0] == "+" else chosen.discard)(change[1:])
+        names = sorted(chosen)
     chosen = set(names)
     if "body_collision" in chosen and not scene.has_body:
         raise InputError(
@@ -115,3 +128,16 @@ def resolve_effects(request: str | tuple[str, ...] | list[str], scene: SceneCont
     if "friction" in chosen and "body_collision" not in chosen:
         raise InputError(None, "effects", "friction together with body_collision", "friction")
     return Effects(**{name: name in chosen for name in EFFECT_NAMES})
+
+
+def _all_effects(scene: SceneContent) -> Effects:
+    """Every effect the scene can support."""
+    return Effects(
+        body_collision=scene.has_body,
+        friction=scene.has_body,
+        garment_collision=scene.n_garments >= 2,
+        self_collision=True,
+        elastic=scene.has_elastic,
+        pins=scene.has_pins,
+        wind=True,
+    )
