@@ -314,7 +314,7 @@ class ClothSolver:
                       2.0 * c.cell, self.contact_n, self.contact_v, h, self.layer_react,
                       self.layer_count, self.effects.friction)
         if self.use_self:
-            inv = 1.0 / self.self_radius
+            inv = 0.5 / self.self_radius  # cells of twice the radius (self_collide_one)
             self._run("self_collision", K.self_collide, self.x, self.w, self.s_owner,
                       self.s_rest, self.s_counts, self.s_starts, self.s_items, inv, self.s_mask,
                       self.self_radius, self.self_min_rest)
@@ -572,7 +572,7 @@ class XPBDSolver(ClothSolver):
         P[K.P_WIND : K.P_WIND + 3] = self.wind_np
         P[K.P_ORIGIN : K.P_ORIGIN + 3] = c.origin_np
         P[K.P_L_ORIGIN : K.P_L_ORIGIN + 3] = lc.origin_np
-        P[K.P_S_INV_CELL] = 1.0 / self.self_radius
+        P[K.P_S_INV_CELL] = 0.5 / self.self_radius
         P[K.P_S_RADIUS] = self.self_radius
         P[K.P_S_MIN_REST] = self.self_min_rest
         P[K.P_L_INV_CELL] = lc.inv_cell
