@@ -27,7 +27,7 @@ from benchmarks.common import write_section
 from datagen.sim.simulate import QUALITY_PRESETS
 from datagen.study import blender as peer
 from datagen.study.metrics import rms_distance
-from datagen.study.run import run_ours
+from datagen.study.run import PEER_EFFECTS, run_ours
 from datagen.study.scenes import build_scene
 from datagen.study.sweep import CHAOS_MM, TWIN_METRES, predictable_frames, run_worker
 
@@ -44,16 +44,16 @@ BLENDER_CONVERGED = 40
 def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
     sub, it = QUALITY_PRESETS["xpbd"]["default"]
     timed_scene = build_scene(scene_name, fabric, resolution, frames=RATE_FRAMES)
-    ours = run_ours(timed_scene, "xpbd", sub, it, effects=peer.PEER_EFFECTS)
-    own = run_ours(timed_scene, "xpbd", sub, it)  # the scene's own effects (auto)
+    ours = run_ours(timed_scene, "xpbd", sub, it)  # PEER_EFFECTS: what the peer runs
+    own = run_ours(timed_scene, "xpbd", sub, it, effects="auto")  # the scene's own
     blender = peer.run_blender(timed_scene, BLENDER_QUALITY)
     short = build_scene(scene_name, fabric, resolution, frames=ERROR_FRAMES)
     ref = run_worker(scene_name, fabric, resolution, "implicit", REF_SUBSTEPS, 20, True,
-                     ERROR_FRAMES, effects=peer.PEER_EFFECTS)["positions"]
+                     ERROR_FRAMES)["positions"]
     half = run_worker(scene_name, fabric, resolution, "implicit", REF_SUBSTEPS // 2, 20, True,
-                      ERROR_FRAMES, effects=peer.PEER_EFFECTS)["positions"]
+                      ERROR_FRAMES)["positions"]
     twin = run_worker(scene_name, fabric, resolution, "implicit", REF_SUBSTEPS, 20, True,
-                      ERROR_FRAMES, TWIN_METRES, effects=peer.PEER_EFFECTS)["positions"]
+                      ERROR_FRAMES, TWIN_METRES)["positions"]
     h = predictable_frames(ref, twin)
     b_conv = peer.run_blender(short, BLENDER_CONVERGED).positions
     n = ERROR_FRAMES + 1
@@ -75,7 +75,7 @@ def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
 
 OUTFIT_SNIPPET = """
 import json, resource, sys, time
-from datagen.study.run import run_ours
+from datagen.study.run import PEER_EFFECTS, run_ours
 from datagen.study.scenes import build_scene
 scene = build_scene("tshirt_walk", "cotton", frames=int(sys.argv[1]))
 out = {}
@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> None:
         f"Blender: quality {BLENDER_CONVERGED}) over the predictable horizon: the frames over "
         f"which a twin of our converged run started {TWIN_METRES * 1e6:.0f} um away stays within "
         f"{CHAOS_MM:.0f} mm. Both simulators run the same effects: ours the scene's own "
-        f"without self-collision (`--effects {peer.PEER_EFFECTS}`), which Blender's peer scene "
+        f"without self-collision (`--effects {PEER_EFFECTS}`), which Blender's peer scene "
         "leaves off; 'ours, own effects' times ours with the scene's own effects (the tube, "
         "a skirt-like garment, has self-collision) for comparison. 'Reference halving' is our "
         "reference against itself at half the substeps (its own convergence); 'converged gap' "

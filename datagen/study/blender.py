@@ -19,10 +19,6 @@ from datagen.study.run import Run
 from datagen.study.scenes import StudyScene
 
 SCRIPT = Path(__file__).with_name("blender_scene.py")
-# The effects of ours that match what Blender's peer simulates: the scene's own, without
-# self-collision, which the peer's scene leaves off (scene_input). Timing ours with an effect
-# the peer does not run would compare two different simulations.
-PEER_EFFECTS = "auto,-self_collision"
 
 
 def blender_executable() -> str | None:

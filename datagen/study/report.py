@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from datagen.study.run import PEER_EFFECTS
 from datagen.study.scenes import START_SUBSTEPS
 from datagen.study.sweep import CHAOS_MM, CONVERGED_MM, TWIN_METRES, Row, pareto
 
@@ -362,7 +363,9 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
     if not gap:
         lines.append("Blender was not run (not installed, or `--no-blender`).")
     else:
-        lines.append("Blender's error is against its own highest affordable quality; the "
+        lines.append("Both run the same effects: ours the scene's own without self-collision "
+                     f"(`--effects {PEER_EFFECTS}`), which Blender's peer scene leaves off. "
+                     "Blender's error is against its own highest affordable quality; the "
                      "distance between that converged run and ours is the model difference:")
         lines.append("")
         for key, mm in gap.items():

@@ -26,10 +26,15 @@ class Run:
 
 
 _WARM: set = set()
+# The effects ours runs in the study and in bench_sim: the scene's own without self-collision,
+# which Blender's peer scene leaves off (blender.scene_input), so that both simulators run
+# the same simulation. Timing ours with an effect the peer does not run (self-collision was
+# 30 % of the skirt-like tube's time) would compare two different simulations.
+PEER_EFFECTS = "auto,-self_collision"
 
 
 def run_ours(scene: StudyScene, solver: str, substeps: int, iterations: int,
-             label: str = "", settings=None, effects: str = "auto",
+             label: str = "", settings=None, effects: str = PEER_EFFECTS,
              speed_limit: float | None = None) -> Run:
     """Simulate the scene; `settings` (a SolverSettings) may set the implicit tolerances and
     `speed_limit` the runaway guard (SimOptions.speed_limit)."""
