@@ -302,11 +302,13 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, so
     from datagen.body.anny_model import default_body_model
     from datagen.io.shard import ShardWriter, write_record
     from datagen.pipeline.stages import run_sequence
+    from datagen.sim.effects import split_effects_request
     from datagen.sim.fabrics import get_fabric, load_fabrics
 
     user_fabrics = load_fabrics(fabrics_file) if fabrics_file else {}
     if fabric:
         get_fabric(fabric, user_fabrics)  # a clear error for an unknown name, before any work
+    split_effects_request(effects)  # likewise for --effects
     spec = single_scene_spec(seed, action, bvh, amass, frames, None)
     spec = scene_with_outfit(spec, garment, fabric, seed)
     wind_v = None

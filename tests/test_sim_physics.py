@@ -911,6 +911,23 @@ def test_an_effects_request_changes_the_scene_rules_by_name():
                         SceneContent(False, 1, ("skirt",), ((0.0, 0.0),), False, False, False, 0.0))
 
 
+def test_simulate_rejects_a_bad_effects_request_before_any_work(tmp_path, monkeypatch):
+    from click.testing import CliRunner
+
+    import datagen.body.anny_model as anny_model
+    from datagen.cli import main
+
+    def no_work():
+        raise AssertionError("the body model was built before --effects was checked")
+
+    monkeypatch.setattr(anny_model, "default_body_model", no_work)
+    out = tmp_path / "s.h5"
+    result = CliRunner().invoke(main, ["simulate", "--effects", "auto,wind", "--out", str(out)])
+    assert result.exit_code == 2
+    assert "field 'effects'" in result.output and "got 'wind'" in result.output
+    assert not out.exists()
+
+
 def test_self_collision_separates_the_layers_of_a_folded_sheet():
     """A sheet folded onto itself, its upper layer 0.4 radius above the lower one and shifted
     off the lower's grid, turned to no axis: every pair of vertices that are far apart in the
