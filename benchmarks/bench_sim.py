@@ -75,7 +75,7 @@ def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
 
 OUTFIT_SNIPPET = """
 import json, resource, sys, time
-from datagen.study.run import PEER_EFFECTS, run_ours
+from datagen.study.run import run_ours
 from datagen.study.scenes import build_scene
 scene = build_scene("tshirt_walk", "cotton", frames=int(sys.argv[1]))
 out = {}

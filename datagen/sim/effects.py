@@ -9,7 +9,8 @@ The rules (docs/simulator.md, "Effects"):
 - elastic rings: only when a garment has elastic loops;
 - pins: only when a garment has pinned vertices (waistbands attached to the body);
 - wind: only when the scene asks for it.
-`--effects all` turns everything on that the scene can support; an explicit list overrides.
+`--effects all` turns everything on that the scene can support; an explicit list overrides;
+`auto` or `all` followed by `-name` / `+name` items changes that base (`auto,-self_collision`).
 """
 
 from __future__ import annotations
@@ -115,12 +116,12 @@ def resolve_effects(request: str | tuple[str, ...] | list[str], scene: SceneCont
     'auto' or 'all' followed by '-name' / '+name' items changes that base: 'auto,-self_collision'
     is the scene's own effects without self-collision."""
     base, names = split_effects_request(request)
-    if base:
+    if not base:
+        chosen = set(names)
+    else:
         chosen = set((auto_effects(scene) if base == "auto" else _all_effects(scene)).enabled())
         for change in names:
             (chosen.add if change[0] == "+" else chosen.discard)(change[1:])
-        names = sorted(chosen)
-    chosen = set(names)
     if "body_collision" in chosen and not scene.has_body:
         raise InputError(
             None, "effects", "body_collision only in a scene with a body", "body_collision"

@@ -225,6 +225,7 @@ class ClothSolver:
             model.rest_length) else 0.01
         self.self_radius = max(float(model.thickness.max()), 0.4 * edge)
         self.self_min_rest = 2.0 * edge + self.self_radius
+        self.self_inv_cell = 0.5 / self.self_radius  # cells twice the radius (self_collide_one)
         size = 1 << int(np.ceil(np.log2(max(2 * self.n, 16))))
         self.s_mask = size - 1
         self.s_counts = _nd(ti.i32, np.zeros(size if self.use_self else 1, np.int32))
@@ -314,9 +315,9 @@ class ClothSolver:
                       2.0 * c.cell, self.contact_n, self.contact_v, h, self.layer_react,
                       self.layer_count, self.effects.friction)
         if self.use_self:
-            inv = 0.5 / self.self_radius  # cells of twice the radius (self_collide_one)
             self._run("self_collision", K.self_collide, self.x, self.w, self.s_owner,
-                      self.s_rest, self.s_counts, self.s_starts, self.s_items, inv, self.s_mask,
+                      self.s_rest, self.s_counts, self.s_starts, self.s_items,
+                      self.self_inv_cell, self.s_mask,
                       self.self_radius, self.self_min_rest)
 
     # -- state -------------------------------------------------------------------------------
@@ -572,7 +573,7 @@ class XPBDSolver(ClothSolver):
         P[K.P_WIND : K.P_WIND + 3] = self.wind_np
         P[K.P_ORIGIN : K.P_ORIGIN + 3] = c.origin_np
         P[K.P_L_ORIGIN : K.P_L_ORIGIN + 3] = lc.origin_np
-        P[K.P_S_INV_CELL] = 0.5 / self.self_radius
+        P[K.P_S_INV_CELL] = self.self_inv_cell
         P[K.P_S_RADIUS] = self.self_radius
         P[K.P_S_MIN_REST] = self.self_min_rest
         P[K.P_L_INV_CELL] = lc.inv_cell

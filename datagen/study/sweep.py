@@ -115,13 +115,13 @@ def full_plan() -> Plan:
 # -- runs in other processes -------------------------------------------------------------------
 def run_worker(scene: str, fabric: str, resolution: str, solver: str, substeps: int,
                iterations: int, fp64: bool, frames: int | None = None,
-               perturb: float = 0.0, effects: str | None = None) -> dict:
+               perturb: float = 0.0) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run.npz"
         cmd = [sys.executable, "-m", "datagen.study.worker", "--scene", scene, "--fabric",
                fabric, "--resolution", resolution, "--solver", solver, "--substeps",
                str(substeps), "--iterations", str(iterations), "--out", str(out),
-               "--perturb", repr(perturb)] + (["--effects", effects] if effects else [])
+               "--perturb", repr(perturb)]
         if fp64:
             cmd.append("--fp64")
         if frames is not None:

@@ -25,8 +25,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fp64", action="store_true")
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--perturb", type=float, default=0.0, help="metres (the twin run)")
-    parser.add_argument("--effects", default=None,
-                        help="as `datagen simulate --effects` (default: the study's, PEER_EFFECTS)")
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
     if args.fp64:
@@ -49,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     # The float64 runs are the converged references: see SimOptions.speed_limit.
     limit = REFERENCE_SPEED_LIMIT if args.fp64 else None
     run = run_ours(scene, args.solver, args.substeps, args.iterations, settings=settings,
-                   speed_limit=limit, **({"effects": args.effects} if args.effects else {}))
+                   speed_limit=limit)
     np.savez(args.out, positions=run.positions, wall=run.wall, simulated=run.simulated,
              total=time.perf_counter() - t, **{f"qa_{k}": v for k, v in run.qa.items()})
     return 0
