@@ -332,6 +332,42 @@ def test_a_reference_ladder_is_reused_while_the_reference_behaves_the_same(monke
     assert runs == [40, 40, 80, 80] and third[3] is None
 
 
+def test_a_trajectory_cached_with_the_scenes_own_effects_is_not_read_for_the_peers(
+        monkeypatch, tmp_path):
+    """The study runs ours with the peer's effects (run.PEER_EFFECTS: the scene's own without
+    self-collision). A skirt-like scene's own effects include self-collision, so its ladders
+    cached before (with it) must not stand for runs without it; where the two are the same (a
+    sheet), the keys stay as they were and so do the cached ladders. The worker is replaced:
+    this is about the bookkeeping."""
+    from datagen.study import cache, fingerprint, sweep
+
+    tube = fingerprint.effects_key("tube_cylinder", "5k", "cotton")
+    assert "self_collision" not in tube["effects"] and "body_collision" in tube["effects"]
+    assert fingerprint.effects_key("sheet_sphere", "4k", "cotton") == {}
+    monkeypatch.setenv("DATAGEN_CACHE_DIR", str(tmp_path))
+    base = np.random.default_rng(2).normal(size=(31, 20, 3))
+    runs = []
+
+    def worker(scene, fabric, resolution, solver, substeps, iterations, fp64, frames=None,
+               perturb=0.0):
+        runs.append(substeps)
+        n = 31 if frames is None else frames + 1
+        return {"positions": (base + 1e-4 / substeps)[:n], "wall": np.float64(2.0)}
+
+    monkeypatch.setattr(sweep, "run_worker", worker)
+    monkeypatch.setattr(fingerprint, "reference_fingerprint", lambda *a: "c" * 16)
+    monkeypatch.setattr(cache, "source_digest", lambda: "sources-one")
+    plan = replace(sweep.full_plan(), reference_levels=2)
+    with monkeypatch.context() as m:  # the bookkeeping before: no effects in the key
+        m.setattr(fingerprint, "effects_key", lambda *a: {})
+        sweep.stored_reference_ladder("tube_cylinder", "cotton", "5k", plan, 31, lambda _: None)
+    assert len(runs) == 4
+    runs.clear()
+    again = sweep.stored_reference_ladder("tube_cylinder", "cotton", "5k", plan, 31,
+                                          lambda _: None)
+    assert len(runs) == 4 and again[3] is None  # measured again, not read back
+
+
 def test_reading_states_what_the_rows_show():
     """The report's reading is computed from the rows: an error falling as 1/substeps reads as
     order 1.00, a preset beaten in time and error by another run on the same mesh is off the

@@ -17,6 +17,7 @@ differ), which only ever reads as a change.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 
 import numpy as np
@@ -51,6 +52,20 @@ def scene_fingerprint(scene, configs: dict[str, list[tuple[int, int]]]) -> str:
     return h.hexdigest()[:16]
 
 
+def effects_key(scene_name: str, resolution: str, fabric: str) -> dict:
+    """The part's run.peer_effects_key, for every study cache key of its runs."""
+    return dict(_effects_key(scene_name, resolution, fabric))
+
+
+@functools.cache
+def _effects_key(scene_name: str, resolution: str, fabric: str) -> tuple:
+    from datagen.study.run import peer_effects_key
+    from datagen.study.scenes import build_scene
+
+    scene = build_scene(scene_name, fabric, resolution, frames=fingerprint_frames(scene_name))
+    return tuple(sorted((k, tuple(v)) for k, v in peer_effects_key(scene).items()))
+
+
 def fingerprint_configs(settings: list[tuple[int, int]]) -> list[tuple[int, int]]:
     """A series' cheapest configuration and the first with the most iterations: what the later
     sweeps of a substep do (stiff bending swept again, 29b9dd5) never shows at one iteration,
@@ -78,7 +93,8 @@ def part_fingerprint(scene_name: str, resolution: str, fabric: str, plan) -> str
     key = {"fingerprint": 2, "scene": scene_name, "resolution": resolution, "fabric": fabric,
            "configs": {solver: [list(x) for x in fingerprint_configs(c)]
                        for solver, c in plan.configs.items()},
-           "reference_start": plan.start_for(scene_name), "frames": fingerprint_frames(scene_name)}
+           "reference_start": plan.start_for(scene_name), "frames": fingerprint_frames(scene_name),
+           **effects_key(scene_name, resolution, fabric)}
     return bytes(cached(key, compute)["digest"]).decode()
 
 
@@ -95,7 +111,7 @@ def reference_fingerprint(scene_name: str, resolution: str, fabric: str, plan) -
 
     key = {"reference_fingerprint": 1, "scene": scene_name, "resolution": resolution,
            "fabric": fabric, "reference_start": plan.start_for(scene_name),
-           "frames": fingerprint_frames(scene_name)}
+           "frames": fingerprint_frames(scene_name), **effects_key(scene_name, resolution, fabric)}
     return bytes(cached(key, compute)["digest"]).decode()
 
 
@@ -112,7 +128,7 @@ def _reference_start(scene_name: str, resolution: str, fabric: str, plan) -> np.
 
     key = {"reference_start_run": 1, "scene": scene_name, "resolution": resolution,
            "fabric": fabric, "substeps": plan.start_for(scene_name),
-           "frames": fingerprint_frames(scene_name)}
+           "frames": fingerprint_frames(scene_name), **effects_key(scene_name, resolution, fabric)}
     return cached(key, compute)["positions"]
 
 

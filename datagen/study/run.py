@@ -8,7 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from datagen.errors import RejectedSequence
-from datagen.sim.simulate import ColliderTrack, SimOptions, simulate
+from datagen.sim.effects import resolve_effects
+from datagen.sim.fabrics import get_fabric
+from datagen.sim.simulate import ColliderTrack, SimOptions, scene_content, simulate
 from datagen.study.scenes import StudyScene
 
 
@@ -31,6 +33,17 @@ _WARM: set = set()
 # the same simulation. Timing ours with an effect the peer does not run (self-collision was
 # 30 % of the skirt-like tube's time) would compare two different simulations.
 PEER_EFFECTS = "auto,-self_collision"
+
+
+def peer_effects_key(scene: StudyScene) -> dict:
+    """What the study cache's key of a run of `scene` with PEER_EFFECTS adds: nothing where
+    they are the scene's own effects (what every run cached before PEER_EFFECTS ran), else the
+    effects by name, so that a trajectory cached with the scene's own effects (the skirt's
+    self-collision) is never read for one without."""
+    fabrics = [get_fabric(g.fabric) for g in scene.garments]
+    content = scene_content(scene.garments, scene.track is not None, None, fabrics)
+    peer = resolve_effects(PEER_EFFECTS, content)
+    return {} if peer == resolve_effects("auto", content) else {"effects": peer.enabled()}
 
 
 def run_ours(scene: StudyScene, solver: str, substeps: int, iterations: int,

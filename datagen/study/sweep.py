@@ -193,14 +193,14 @@ def stored_reference_ladder(scene: str, fabric: str, resolution: str, plan: Plan
     results and the source digest of the run that measured it when that was an earlier run
     (None when measured now)."""
     from datagen.study.cache import cached, source_digest
-    from datagen.study.fingerprint import reference_fingerprint
+    from datagen.study.fingerprint import effects_key, reference_fingerprint
 
     key = {"reference_ladder": 1, "scene": scene, "resolution": resolution, "fabric": fabric,
            "behaviour": reference_fingerprint(scene, resolution, fabric, plan),
            "start": plan.start_for(scene), "levels": plan.reference_levels,
            "budget_s": plan.reference_budget_s, "horizon": horizon,
            "frames": SCENE_FRAMES.get(scene), "twin_metres": TWIN_METRES, "chaos_mm": CHAOS_MM,
-           "converged_mm": CONVERGED_MM}
+           "converged_mm": CONVERGED_MM, **effects_key(scene, resolution, fabric)}
     measured_now = []
 
     def compute() -> dict[str, np.ndarray]:
