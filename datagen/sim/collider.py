@@ -83,6 +83,7 @@ class BodyCollider:
         self.ns1 = ti.ndarray(VEC3, n_vertices)
         self.relative_travel = ti.ndarray(REAL, n_vertices)  # from the mean motion, per frame
         self.relative_travel.fill(0.0)
+        self.tbox = ti.ndarray(K.GUARD, len(self.faces_np))  # per triangle (K.grid_count)
         self.shift_np = np.zeros(3)
         self._n_cells_alloc = 0
         self.counts = self.starts = self.items = None
@@ -154,6 +155,8 @@ class BodyCollider:
             self.inv_cell,
             self.dims,
             self.counts,
+            self.relative_travel,
+            self.tbox,
         )
         K.grid_prefix(self.counts, self.starts, n_cells)
         total = int(self.starts[n_cells])
@@ -213,7 +216,7 @@ class BodyCollider:
         K.grid_nearest(x, w, self.b0, self.b1, self.faces, self.origin, self.inv_cell,
                        self.dims, self.starts, self.items, float(s), float(self.cell), tri,
                        int(only_untracked), guard, float(odo), float(self.grid_tag),
-                       VEC3(*self.shift_np), self.relative_travel)
+                       VEC3(*self.shift_np), self.tbox)
 
     def _scratch_guard(self, n: int):
         from datagen.sim.solvers import fresh_guards

@@ -1043,7 +1043,11 @@ def grid_count(
     inv_cell: REAL,
     dims: ti.math.ivec3,
     counts: I1,
+    travel: F1,
+    tbox: V8,
 ):
+    """Count each cell's triangles (boxes swept over the frame), and keep each triangle's box
+    and fastest corner's `travel` in `tbox` (lo xyz, hi xyz, travel, 0) for nearest_one."""
     for t in range(faces.shape[0]):
         if mask[t] != 0:
             f = faces[t]
@@ -1055,6 +1059,8 @@ def grid_count(
                 ti.max(ti.max(b0[f[0]], b0[f[1]]), ti.max(b0[f[2]], b1[f[0]])),
                 ti.max(b1[f[1]], b1[f[2]]),
             )
+            speed = ti.max(travel[f[0]], travel[f[1]], travel[f[2]])
+            tbox[t] = GUARD(lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], speed, 0.0)
             c0 = ti.max(ti.cast(ti.floor((lo - origin) * inv_cell), ti.i32), 0)
             c1 = ti.min(ti.cast(ti.floor((hi - origin) * inv_cell), ti.i32), dims - 1)
             for cx in range(c0[0], c1[0] + 1):
@@ -1130,7 +1136,7 @@ def nearest_one(
     grid_tag: REAL,
     s_frame: REAL,
     shift: vec3,
-    travel: F1,
+    tbox: V8,
 ):
     """The closest collider triangle to cloth vertex i within `max_dist` (else -1), at body
     positions interpolated at fraction s, searching the 27 grid cells around the vertex.
@@ -1144,9 +1150,9 @@ def nearest_one(
       the vertex stays within half of `max_dist` of guard.xyz only the searched cells'
       triangles can come near, and they can close in by no more than the vertex's and their
       own motion relative to the body's mean motion over the frame (`shift`): the vertex's
-      |x - guard.xyz - shift * (s_frame - guard.time)|, theirs the fastest corner's `travel`
-      (each collider vertex's distance from the mean motion over the frame) times the frame
-      fraction since. `s_frame` is the fraction of the frame the body is at.
+      |x - guard.xyz - shift * (s_frame - guard.time)|, theirs the fastest corner's travel
+      (each collider vertex's distance from the mean motion over the frame, kept per triangle
+      in `tbox` with its box: grid_count) times the frame fraction since. `s_frame` is the fraction of the frame the body is at.
     The odometer counts the fastest limb, and on a walking body it had every loose vertex
     searched again at almost every substep: half of an xpbd frame. Cloth near the torso moves
     with it, so the local, relative bound holds for several substeps.
@@ -1186,19 +1192,26 @@ def nearest_one(
                 cid = (c[0] * dims[1] + c[1]) * dims[2] + c[2]
                 for q in range(starts[cid], starts[cid + 1]):
                     t = items[q]
-                    f = faces[t]
-                    fastest = ti.max(fastest, travel[f[0]], travel[f[1]], travel[f[2]])
-                    a = lerp3(b0[f[0]], b1[f[0]], s)
-                    b = lerp3(b0[f[1]], b1[f[1]], s)
-                    cc = lerp3(b0[f[2]], b1[f[2]], s)
-                    box = ti.max(ti.min(a, b, cc) - p, 0.0, p - ti.max(a, b, cc))
-                    if box.norm_sqr() <= bound:
-                        r = closest_on_triangle(p, a, b, cc)
-                        if r[3] < best:
-                            best = r[3]
-                            best_t = t
-                            reach = ti.sqrt(best) + 1e-6
-                            bound = reach * reach
+                    tb = tbox[t]
+                    fastest = ti.max(fastest, tb[6])
+                    # The box swept over the frame holds the one at s: a triangle whose swept
+                    # box is beyond the bound is culled without reading its corners (most
+                    # are: the same ones are measured, in the same order, as without it).
+                    swept = ti.max(vec3(tb[0], tb[1], tb[2]) - p, 0.0,
+                                   p - vec3(tb[3], tb[4], tb[5]))
+                    if swept.norm_sqr() <= bound:
+                        f = faces[t]
+                        a = lerp3(b0[f[0]], b1[f[0]], s)
+                        b = lerp3(b0[f[1]], b1[f[1]], s)
+                        cc = lerp3(b0[f[2]], b1[f[2]], s)
+                        box = ti.max(ti.min(a, b, cc) - p, 0.0, p - ti.max(a, b, cc))
+                        if box.norm_sqr() <= bound:
+                            r = closest_on_triangle(p, a, b, cc)
+                            if r[3] < best:
+                                best = r[3]
+                                best_t = t
+                                reach = ti.sqrt(best) + 1e-6
+                                bound = reach * reach
         tri[i] = best_t
         if best_t < 0:
             guard[i] = GUARD(p[0], p[1], p[2], odo, grid_tag, s_frame, fastest, 0.0)
@@ -1224,7 +1237,7 @@ def grid_nearest(
     odo: REAL,
     grid_tag: REAL,
     shift: vec3,
-    travel: F1,
+    tbox: V8,
 ):
     for i in x:
         nearest_one(
@@ -1248,7 +1261,7 @@ def grid_nearest(
             grid_tag,
             s,
             shift,
-            travel,
+            tbox,
         )
 
 
@@ -1337,7 +1350,7 @@ def xpbd_frame(
     starts: I1,
     items: I1,
     guard: V8,
-    travel: F1,
+    tbox: V8,
     s_owner: I1,
     s_rest: V3,
     s_counts: I1,
@@ -1346,7 +1359,7 @@ def xpbd_frame(
     l_w: F1,
     l_tri: I1,
     l_guard: V8,
-    l_travel_v: F1,
+    l_tbox: V8,
     l_faces: I3,
     l_fadj: I3,
     l_b0: V3,
@@ -1462,7 +1475,7 @@ def xpbd_frame(
             for i in range(n):
                 nearest_one(
                     i, x, w, bs1, bs1, faces, origin, inv_cell, dims, starts, items, 1.0, cell,
-                    tri, 1, guard, odo0 + s1 * body_travel, tag, s1, shift, travel,
+                    tri, 1, guard, odo0 + s1 * body_travel, tag, s1, shift, tbox,
                 )
             for i in range(n):
                 collide_one(
@@ -1495,7 +1508,7 @@ def xpbd_frame(
                 nearest_one(
                     i, x, l_w, l_b0, l_b1, l_faces, l_origin, l_inv_cell, l_dims, l_starts,
                     l_items, s1, l_cell, l_tri, 1, l_guard, l_odo0 + s1 * l_travel, l_tag, s1,
-                    l_shift, l_travel_v,
+                    l_shift, l_tbox,
                 )
             for i in range(n):
                 layer_normal_clear_one(i, l_nrm)

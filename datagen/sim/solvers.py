@@ -607,9 +607,9 @@ class XPBDSolver(ClothSolver):
             self.pin_idx, self.pin_t0, self.pin_t1, self.tethers, self.tether_len,
             self.tri, c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, c.bs0, c.bs1, c.ns1,
             self.thickness, self.friction, self.contact_n, self.contact_v,
-            c.starts, c.items, self.guard, c.relative_travel,
+            c.starts, c.items, self.guard, c.tbox,
             self.s_owner, self.s_rest, self.s_counts, self.s_starts, self.s_items,
-            self.layer_w, self.layer_tri, self.layer_guard, lc.relative_travel,
+            self.layer_w, self.layer_tri, self.layer_guard, lc.tbox,
             lc.faces, lc.fadj, lc.b0, lc.b1, self.layer_nrm, self.layer_react, self.layer_count,
             lc.starts, lc.items,
             self.limit_adj, self.limit_lists,
@@ -650,7 +650,7 @@ class XPBDSolver(ClothSolver):
                 cell=1.0,
                 grid_tag=0,
                 shift_np=np.zeros(3),
-                relative_travel=_nd(REAL, np.zeros(1, NP_REAL)),
+                tbox=ti.ndarray(K.GUARD, 1),
             )
         return self._dummy_collider
 
