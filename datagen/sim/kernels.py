@@ -1152,7 +1152,8 @@ def nearest_one(
       own motion relative to the body's mean motion over the frame (`shift`): the vertex's
       |x - guard.xyz - shift * (s_frame - guard.time)|, theirs the fastest corner's travel
       (each collider vertex's distance from the mean motion over the frame, kept per triangle
-      in `tbox` with its box: grid_count) times the frame fraction since. `s_frame` is the fraction of the frame the body is at.
+      in `tbox` with its box: grid_count) times the frame fraction since. `s_frame` is the
+      fraction of the frame the body is at.
     The odometer counts the fastest limb, and on a walking body it had every loose vertex
     searched again at almost every substep: half of an xpbd frame. Cloth near the torso moves
     with it, so the local, relative bound holds for several substeps.
