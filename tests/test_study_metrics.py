@@ -293,6 +293,22 @@ def test_a_failing_finer_rung_ends_the_reference_ladder(monkeypatch):
         sweep.reference_ladder("sheet_sphere", "denim", "4k", plan, 31, lambda _: None)
 
 
+def _fake_study_worker(monkeypatch, sweep, seed: int) -> list[int]:
+    """Replace the study's worker process by random trajectories that converge with the
+    substeps; returns the list of substeps it is asked for."""
+    base = np.random.default_rng(seed).normal(size=(31, 20, 3))
+    runs: list[int] = []
+
+    def worker(scene, fabric, resolution, solver, substeps, iterations, fp64, frames=None,
+               perturb=0.0):
+        runs.append(substeps)
+        n = 31 if frames is None else frames + 1
+        return {"positions": (base + 1e-4 / substeps)[:n], "wall": np.float64(2.0)}
+
+    monkeypatch.setattr(sweep, "run_worker", worker)
+    return runs
+
+
 def test_a_reference_ladder_is_reused_while_the_reference_behaves_the_same(monkeypatch,
                                                                             tmp_path):
     """A part's float64 ladder is most of its time and depends only on the implicit solver: a
@@ -303,16 +319,7 @@ def test_a_reference_ladder_is_reused_while_the_reference_behaves_the_same(monke
     from datagen.study import cache, fingerprint, sweep
 
     monkeypatch.setenv("DATAGEN_CACHE_DIR", str(tmp_path))
-    base = np.random.default_rng(1).normal(size=(31, 20, 3))
-    runs = []
-
-    def worker(scene, fabric, resolution, solver, substeps, iterations, fp64, frames=None,
-               perturb=0.0):
-        runs.append(substeps)
-        n = 31 if frames is None else frames + 1
-        return {"positions": (base + 1e-4 / substeps)[:n], "wall": np.float64(2.0)}
-
-    monkeypatch.setattr(sweep, "run_worker", worker)
+    runs = _fake_study_worker(monkeypatch, sweep, seed=1)
     behaviour = {"digest": "a" * 16}
     monkeypatch.setattr(fingerprint, "reference_fingerprint", lambda *a: behaviour["digest"])
     monkeypatch.setattr(cache, "source_digest", lambda: "sources-one")
@@ -345,16 +352,7 @@ def test_a_trajectory_cached_with_the_scenes_own_effects_is_not_read_for_the_pee
     assert "self_collision" not in tube["effects"] and "body_collision" in tube["effects"]
     assert fingerprint.effects_key("sheet_sphere", "4k", "cotton") == {}
     monkeypatch.setenv("DATAGEN_CACHE_DIR", str(tmp_path))
-    base = np.random.default_rng(2).normal(size=(31, 20, 3))
-    runs = []
-
-    def worker(scene, fabric, resolution, solver, substeps, iterations, fp64, frames=None,
-               perturb=0.0):
-        runs.append(substeps)
-        n = 31 if frames is None else frames + 1
-        return {"positions": (base + 1e-4 / substeps)[:n], "wall": np.float64(2.0)}
-
-    monkeypatch.setattr(sweep, "run_worker", worker)
+    runs = _fake_study_worker(monkeypatch, sweep, seed=2)
     monkeypatch.setattr(fingerprint, "reference_fingerprint", lambda *a: "c" * 16)
     monkeypatch.setattr(cache, "source_digest", lambda: "sources-one")
     plan = replace(sweep.full_plan(), reference_levels=2)
