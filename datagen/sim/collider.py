@@ -164,10 +164,8 @@ class BodyCollider:
             self._items_alloc = int(total * 1.5) + 16
             self.items = ti.ndarray(ti.i32, self._items_alloc)
         K.grid_fill(
-            self.b0,
-            self.b1,
-            self.faces,
             self.mask,
+            self.tbox,
             self.origin,
             self.inv_cell,
             self.dims,

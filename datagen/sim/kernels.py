@@ -1082,10 +1082,8 @@ def grid_prefix(counts: I1, starts: I1, n_cells: ti.i32):
 
 @ti.kernel
 def grid_fill(
-    b0: V3,
-    b1: V3,
-    faces: I3,
     mask: I1,
+    tbox: V8,
     origin: vec3,
     inv_cell: REAL,
     dims: ti.math.ivec3,
@@ -1093,17 +1091,12 @@ def grid_fill(
     starts: I1,
     items: I1,
 ):
-    for t in range(faces.shape[0]):
+    """File each triangle in the cells its box (from grid_count's `tbox`) overlaps."""
+    for t in range(mask.shape[0]):
         if mask[t] != 0:
-            f = faces[t]
-            lo = ti.min(
-                ti.min(ti.min(b0[f[0]], b0[f[1]]), ti.min(b0[f[2]], b1[f[0]])),
-                ti.min(b1[f[1]], b1[f[2]]),
-            )
-            hi = ti.max(
-                ti.max(ti.max(b0[f[0]], b0[f[1]]), ti.max(b0[f[2]], b1[f[0]])),
-                ti.max(b1[f[1]], b1[f[2]]),
-            )
+            tb = tbox[t]
+            lo = vec3(tb[0], tb[1], tb[2])
+            hi = vec3(tb[3], tb[4], tb[5])
             c0 = ti.max(ti.cast(ti.floor((lo - origin) * inv_cell), ti.i32), 0)
             c1 = ti.min(ti.cast(ti.floor((hi - origin) * inv_cell), ti.i32), dims - 1)
             for cx in range(c0[0], c1[0] + 1):

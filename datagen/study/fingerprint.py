@@ -59,11 +59,13 @@ def effects_key(scene_name: str, resolution: str, fabric: str) -> dict:
 
 @functools.cache
 def _effects_key(scene_name: str, resolution: str, fabric: str) -> tuple:
+    """As effects_key, built once per part (a scene build), as items: a cached dict could be
+    changed by a caller."""
     from datagen.study.run import peer_effects_key
     from datagen.study.scenes import build_scene
 
     scene = build_scene(scene_name, fabric, resolution, frames=fingerprint_frames(scene_name))
-    return tuple(sorted((k, tuple(v)) for k, v in peer_effects_key(scene).items()))
+    return tuple(peer_effects_key(scene).items())
 
 
 def fingerprint_configs(settings: list[tuple[int, int]]) -> list[tuple[int, int]]:

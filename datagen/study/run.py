@@ -43,7 +43,7 @@ def peer_effects_key(scene: StudyScene) -> dict:
     fabrics = [get_fabric(g.fabric) for g in scene.garments]
     content = scene_content(scene.garments, scene.track is not None, None, fabrics)
     peer = resolve_effects(PEER_EFFECTS, content)
-    return {} if peer == resolve_effects("auto", content) else {"effects": peer.enabled()}
+    return {} if peer == resolve_effects("auto", content) else {"effects": tuple(peer.enabled())}
 
 
 def run_ours(scene: StudyScene, solver: str, substeps: int, iterations: int,
