@@ -268,6 +268,7 @@ class ClothSolver:
         self.layer_count.fill(0.0)
         self.layer_tri = _nd(ti.i32, -np.ones(self.n, np.int32))
         self.layer_guard = _nd(K.GUARD, fresh_guards(self.n))
+        self.layer_search_due = True
         self.layer_odo = 0.0  # metres the inner garment's fastest vertex has travelled
         self.layer_travel = 0.0  # ... and travels in the current frame
 
@@ -276,7 +277,8 @@ class ClothSolver:
         start and predicted at its end. Inner vertices near the body move with the body triangle
         they track, the others with their velocity: the inner garment moves as fast as the body
         (17 cm a frame in a run), and a surface held still for the frame would drag the outer
-        garment behind it and then jump through it."""
+        garment behind it and then jump through it. Outer vertices are searched against it
+        afresh when search() was called since the last frame, as the body's are."""
         if not self.use_layers:
             return
         x, v = self.get_state()
@@ -294,8 +296,10 @@ class ClothSolver:
         path0[self.inner_vertices] = inner0
         path1[self.inner_vertices] = inner1
         c.set_frames(path0, path1)
-        self._run("garment_collision", c.nearest, self.x, self.layer_w, self.layer_tri, 0.0,
-                  False, self.layer_guard, self.layer_odo)
+        if self.layer_search_due:
+            self._run("garment_collision", c.nearest, self.x, self.layer_w, self.layer_tri, 0.0,
+                      False, self.layer_guard, self.layer_odo)
+            self.layer_search_due = False
 
     def end_frame(self, collider) -> None:
         if collider is not None and self.effects.body_collision:
@@ -401,7 +405,10 @@ class ClothSolver:
         )
 
     def search(self, collider, s: float) -> None:
-        """Global closest-triangle search (once per frame, or when the body moves fast)."""
+        """Global closest-triangle search against the body (every SimOptions.search_every
+        frames; between searches vertices follow the triangles they track). Outer garments are
+        searched afresh against the inner one at the same frames (begin_frame)."""
+        self.layer_search_due = True
         if collider is not None and self.effects.body_collision:
             self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s, False,
                       self.guard, self.odo + s * collider.max_speed)
