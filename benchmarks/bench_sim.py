@@ -35,6 +35,7 @@ from datagen.study.sweep import CHAOS_MM, TWIN_METRES, predictable_frames, run_w
 COMMAND = "python -m benchmarks.bench_sim"
 PEER_SCENES = [("sheet_sphere", "4k"), ("sheet_sphere", "10k"), ("tube_cylinder", "5k")]
 FABRICS = ["cotton", "denim"]
+PAIR_REPEATS = 3  # pairs of simultaneous t-shirt runs (two_core_figures)
 RATE_FRAMES = 60  # 2 s: the frames both simulators are timed over
 ERROR_FRAMES = 16  # frames simulated for the error measures (the horizon is within these)
 REF_SUBSTEPS = 160
@@ -119,20 +120,26 @@ def two_core_figures() -> dict:
     procs = [subprocess.Popen([sys.executable, "-c", PAIR_SNIPPET, str(RATE_FRAMES), str(sub),
                                str(it)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                               text=True, env=env) for _ in range(2)]
-    for p in procs:  # both compiled and warm before either is timed
-        while (line := p.stdout.readline()) and line.strip() != "ready":
-            pass
-        if not line:
-            raise RuntimeError(f"a paired run ended before it was ready (exit {p.wait()})")
-    for p in procs:
-        p.stdin.write("go\n")
-        p.stdin.flush()
-    runs = []
-    for p in procs:
-        out, _ = p.communicate()
-        if p.returncode != 0:
-            raise RuntimeError(f"a paired run failed (exit {p.returncode})")
-        runs.append(json.loads(out.strip().splitlines()[-1]))
+    try:
+        for p in procs:  # both compiled and warm before either is timed
+            while (line := p.stdout.readline()) and line.strip() != "ready":
+                pass
+            if not line:
+                raise RuntimeError(f"a paired run ended before it was ready (exit {p.wait()})")
+        for p in procs:
+            p.stdin.write("go\n")
+            p.stdin.flush()
+        runs = []
+        for p in procs:
+            out, _ = p.communicate()
+            if p.returncode != 0:
+                raise RuntimeError(f"a paired run failed (exit {p.returncode})")
+            runs.append(json.loads(out.strip().splitlines()[-1]))
+    finally:
+        for p in procs:  # a failed twin must not be left waiting for its start
+            if p.poll() is None:
+                p.kill()
+                p.wait()
     return {"rate_all": sum(r["simulated"] for r in runs) / max(r["wall"] for r in runs),
             "rates": [r["simulated"] / r["wall"] for r in runs]}
 
@@ -164,8 +171,10 @@ def main(argv: list[str] | None = None) -> None:
                 rows.append(peer_row(scene_name, resolution, fabric, log))
     outfit = outfit_figures()
     log(outfit)
-    pair = two_core_figures()
-    log(pair)
+    # The paired rate sits near its target and this machine is shared: three pairs, the median.
+    pairs = sorted((two_core_figures() for _ in range(PAIR_REPEATS)), key=lambda p: p["rate_all"])
+    log(pairs)
+    pair = pairs[len(pairs) // 2]
     lines = [
         f"Ours: xpbd at the `default` preset ({sub} substeps x {it} iterations); Blender "
         f"{peer.blender_version()} at quality {BLENDER_QUALITY} (its default), both timed in this "
@@ -213,8 +222,9 @@ def main(argv: list[str] | None = None) -> None:
         f"vertices, 60 frames from the study's settled start on the motion's first pose): "
         f"one simulation on one thread, **{rate:.2f} simulated seconds per wall-clock "
         f"second**; two simulations of it at once, one per core (how a dataset run uses the "
-        f"machine), **{pair['rate_all']:.2f}** in all "
-        f"({' and '.join(f'{r:.2f}' for r in pair['rates'])} each). Target 0.5 on 2 cores: "
+        f"machine), **{pair['rate_all']:.3f}** in all, the median of {PAIR_REPEATS} pairs "
+        f"({pairs[0]['rate_all']:.3f}-{pairs[-1]['rate_all']:.3f}; the median pair's runs "
+        f"{' and '.join(f'{r:.2f}' for r in pair['rates'])}). Target 0.5 on 2 cores: "
         f"**{'meets' if pair['rate_all'] >= 0.5 else 'misses'}** it with both cores, "
         f"**{'meets' if rate >= 0.5 else 'misses'}** it with one simulation (a second thread "
         f"does not pay within a substep: docs/simulator.md). Peak memory of the process "
