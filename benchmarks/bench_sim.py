@@ -92,20 +92,14 @@ print(json.dumps(out))
 
 
 # The same scene in two processes at once, one per core, as a dataset run uses the machine: each
-# compiles and runs two frames first, then both start their timed run together.
+# compiles its kernels, says so, and starts its timed run when told to (both together).
 PAIR_SNIPPET = """
 import json, sys
-from dataclasses import replace
-from datagen.sim.simulate import ColliderTrack
 from datagen.study.run import run_ours
 from datagen.study.scenes import build_scene
 scene = build_scene("tshirt_walk", "cotton", frames=int(sys.argv[1]))
-t = scene.track
-short = replace(scene, frames=2, track=ColliderTrack(t.vertices[:3], t.faces, t.face_mask, t.fps))
-run_ours(short, "xpbd", int(sys.argv[2]), int(sys.argv[3]), effects="auto")
-print("ready", flush=True)
-sys.stdin.readline()
-run = run_ours(scene, "xpbd", int(sys.argv[2]), int(sys.argv[3]), effects="auto")
+run = run_ours(scene, "xpbd", int(sys.argv[2]), int(sys.argv[3]), effects="auto",
+               on_warm=lambda: (print("ready", flush=True), sys.stdin.readline()))
 print(json.dumps({"wall": run.wall, "simulated": run.simulated}))
 """
 

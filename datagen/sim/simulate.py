@@ -327,7 +327,8 @@ class _Simulation:
             solver.search(self.collider, 1.0)
         h = 1.0 / self.fps / solver.settings.substeps
         self._known = None
-        solver.advance_frame(self.collider, solver.settings.substeps, h, profile)
+        # Outer garments are searched against the inner one at the same frames as the body.
+        solver.advance_frame(self.collider, solver.settings.substeps, h, profile, search)
         x, v = self._state(solver)
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
             return "non-finite positions"

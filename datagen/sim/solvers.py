@@ -268,17 +268,17 @@ class ClothSolver:
         self.layer_count.fill(0.0)
         self.layer_tri = _nd(ti.i32, -np.ones(self.n, np.int32))
         self.layer_guard = _nd(K.GUARD, fresh_guards(self.n))
-        self.layer_search_due = True
         self.layer_odo = 0.0  # metres the inner garment's fastest vertex has travelled
         self.layer_travel = 0.0  # ... and travels in the current frame
 
-    def begin_frame(self, collider, frame_time: float) -> None:
+    def begin_frame(self, collider, frame_time: float, search: bool = True) -> None:
         """Per-frame set-up: the inner garment's surface for the layer collisions, at the frame's
         start and predicted at its end. Inner vertices near the body move with the body triangle
         they track, the others with their velocity: the inner garment moves as fast as the body
         (17 cm a frame in a run), and a surface held still for the frame would drag the outer
-        garment behind it and then jump through it. Outer vertices are searched against it
-        afresh when search() was called since the last frame, as the body's are."""
+        garment behind it and then jump through it. With `search`, outer vertices are searched
+        against it afresh (the frames the body is searched, as between those they follow the
+        inner triangles they track)."""
         if not self.use_layers:
             return
         x, v = self.get_state()
@@ -296,10 +296,9 @@ class ClothSolver:
         path0[self.inner_vertices] = inner0
         path1[self.inner_vertices] = inner1
         c.set_frames(path0, path1)
-        if self.layer_search_due:
+        if search:
             self._run("garment_collision", c.nearest, self.x, self.layer_w, self.layer_tri, 0.0,
                       False, self.layer_guard, self.layer_odo)
-            self.layer_search_due = False
 
     def end_frame(self, collider) -> None:
         if collider is not None and self.effects.body_collision:
@@ -406,9 +405,7 @@ class ClothSolver:
 
     def search(self, collider, s: float) -> None:
         """Global closest-triangle search against the body (every SimOptions.search_every
-        frames; between searches vertices follow the triangles they track). Outer garments are
-        searched afresh against the inner one at the same frames (begin_frame)."""
-        self.layer_search_due = True
+        frames; between searches vertices follow the triangles they track)."""
         if collider is not None and self.effects.body_collision:
             self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s, False,
                       self.guard, self.odo + s * collider.max_speed)
@@ -416,10 +413,12 @@ class ClothSolver:
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
         raise NotImplementedError
 
-    def advance_frame(self, collider, n_sub: int, h: float, profile: bool = False) -> None:
+    def advance_frame(self, collider, n_sub: int, h: float, profile: bool = False,
+                      search: bool = True) -> None:
         """All substeps of one frame. `profile` runs the per-effect kernels so that each
-        effect's cost is measured (solvers with a fused frame kernel skip them otherwise)."""
-        self.begin_frame(collider, n_sub * h)
+        effect's cost is measured (solvers with a fused frame kernel skip them otherwise);
+        `search` searches outer garments against the inner one afresh (begin_frame)."""
+        self.begin_frame(collider, n_sub * h, search)
         for k in range(n_sub):
             self.substep(h, collider, k / n_sub, (k + 1) / n_sub)
         self.end_frame(collider)
@@ -555,10 +554,11 @@ class XPBDSolver(ClothSolver):
         self.stiff_bends = _nd(ti.i32, ids if len(ids) else np.zeros(1, np.int32))
         self._stiff_h = h
 
-    def advance_frame(self, collider, n_sub: int, h: float, profile: bool = False) -> None:
+    def advance_frame(self, collider, n_sub: int, h: float, profile: bool = False,
+                      search: bool = True) -> None:
         if profile or not self.gauss_seidel:
-            return super().advance_frame(collider, n_sub, h, profile)
-        self.begin_frame(collider, n_sub * h)
+            return super().advance_frame(collider, n_sub, h, profile, search)
+        self.begin_frame(collider, n_sub * h, search)
         self._use_step(h)
         import time
 
