@@ -138,7 +138,7 @@ def from_mapping(cls: type[T], data: dict, source: str | Path | None = None, pat
             source,
             f"{path}.{key}" if path else str(key),
             f"one of the known keys ({', '.join(sorted(fields))})",
-            "an unknown key",
+            key,
         )
     kwargs = {}
     for name, field in fields.items():

@@ -309,7 +309,7 @@ def test_user_fabrics_from_yaml(tmp_path):
     assert jersey.stretch == 120.0 and jersey.density == FABRICS["cotton"].density
     bad = tmp_path / "bad.yaml"
     bad.write_text("fabrics:\n  x:\n    base: cotton\n    strech: 1.0\n")
-    with pytest.raises(InputError, match="bad.yaml.*fabrics.x.strech"):
+    with pytest.raises(InputError, match="bad.yaml.*fabrics.x.strech.*known keys.*got 'strech'"):
         load_fabrics(bad)
     neg = tmp_path / "neg.yaml"
     neg.write_text("fabrics:\n  x:\n    base: cotton\n    density: -1.0\n")
