@@ -1,9 +1,10 @@
 """Taichi start-up, once per process.
 
 On this project's 2-core CPUs a dataset run uses one single-threaded simulation per worker
-process (no thread hand-offs, Gauss-Seidel sweeps are exact); one-off runs may use more threads.
-The same kernels run on a GPU backend (`DATAGEN_TI_ARCH=cuda`), where constraint sweeps switch to
-Jacobi (`serial()` is False).
+process (one serial launch per frame); one-off runs may use more threads. The same kernels run on
+a GPU backend (`DATAGEN_TI_ARCH=cuda`) and on more than one CPU thread (`DATAGEN_TI_THREADS`),
+where `serial()` is False and constraint sweeps switch to coloured Gauss-Seidel: one parallel
+loop per colour of constraints that share no vertex.
 """
 
 from __future__ import annotations

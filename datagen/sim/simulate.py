@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from datagen.errors import InputError, RejectedSequence
+from datagen.sim.backend import serial
 from datagen.sim.collider import BodyCollider, vertex_normals
 from datagen.sim.effects import Effects, SceneContent, resolve_effects
 from datagen.sim.fabrics import Fabric, get_fabric
@@ -28,6 +29,14 @@ QUALITY_PRESETS: dict[str, dict[str, tuple[int, int]]] = {
     "xpbd": {"draft": (10, 2), "default": (20, 4), "reference": (40, 8)},
     "explicit": {"draft": (200, 1), "default": (400, 1), "reference": (2000, 1)},
     "implicit": {"draft": (2, 4), "default": (5, 10), "reference": (50, 20)},
+}
+# On a parallel backend (a GPU, or more than one CPU thread: backend.serial() is False) xpbd's
+# sweeps are coloured (solvers.XPBDSolver), and a coloured sweep carries a correction fewer
+# springs along than a serial sweep in mesh order. Each preset there runs twice the substeps and
+# twice the iterations: the least measured to keep the serial preset's error or less on the
+# three peer scenes (docs/simulator.md).
+PARALLEL_QUALITY_PRESETS: dict[str, dict[str, tuple[int, int]]] = {
+    "xpbd": {"draft": (20, 4), "default": (40, 8), "reference": (80, 16)},
 }
 # Over-relaxation of each solver's Gauss-Seidel sweeps (SolverSettings.sor). For xpbd, 1.6
 # roughly halves the default preset's error against the float64 reference at the same cost
@@ -76,6 +85,8 @@ class SimOptions:
             raise InputError(None, "solver", f"one of {', '.join(QUALITY_PRESETS)}", self.solver)
         if self.quality not in presets:
             raise InputError(None, "quality", f"one of {', '.join(presets)}", self.quality)
+        if self.solver in PARALLEL_QUALITY_PRESETS and not serial():
+            presets = PARALLEL_QUALITY_PRESETS[self.solver]
         sub, it = presets[self.quality]
         return self.substeps or sub, self.iterations or it
 

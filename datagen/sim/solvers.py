@@ -3,7 +3,7 @@
 - `xpbd`: extended position-based dynamics with small substeps (Macklin et al. 2019) on the
   same springs and bending model as the others: stiffness enters as compliance 1/k, the
   Rayleigh damping of the springs as XPBD's damping term, so it converges to the same
-  physics. Gauss-Seidel sweeps (alternating direction) on the CPU, Jacobi on a GPU.
+  physics. Gauss-Seidel sweeps (alternating direction) on the CPU, coloured Gauss-Seidel on a GPU.
 - `explicit`: semi-implicit (symplectic) Euler with many substeps; a baseline.
 - `implicit`: backward Euler solved by Newton with preconditioned conjugate gradients
   (datagen.sim.implicit); the reference the others are measured against.
@@ -47,7 +47,6 @@ class SolverSettings:
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
     wind: tuple[float, float, float] = (0.0, 0.0, 0.0)
     recover_speed: float = 0.3  # m/s: how fast a penetrating vertex is moved out
-    jacobi_omega: float = 0.5
     sor: float = 1.0  # over-relaxation of Gauss-Seidel sweeps
     tolerance: float = 1e-5  # implicit: Newton stops when the update is below this (m)
     cg_tolerance: float = 1e-4  # implicit: relative residual of each CG solve
@@ -72,6 +71,38 @@ def _nd(dtype, data: np.ndarray):
     return arr
 
 
+def colour_order(elements: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """Greedy colouring of constraint elements (rows of vertex indices) so that no two of a
+    colour share a vertex: in element order, each takes the lowest colour that none of its
+    vertices has yet. Returns the element indices sorted by colour (stable: a colour keeps the
+    elements' order) and the colours' offsets into them (colours + 1)."""
+    used = [0] * n_vertices  # per vertex, a bit per colour it has
+    colours = np.zeros(len(elements), np.int64)
+    for k, row in enumerate(np.asarray(elements).tolist()):
+        taken = 0
+        for v in row:
+            taken |= used[v]
+        free = ~taken & (taken + 1)  # the lowest colour not taken, as a bit
+        for v in row:
+            used[v] |= free
+        colours[k] = free.bit_length() - 1
+    order = np.argsort(colours, kind="stable").astype(np.int32)
+    n_colours = int(colours.max()) + 1 if len(colours) else 0
+    ptr = np.zeros(n_colours + 1, np.int32)
+    np.add.at(ptr, colours + 1, 1)
+    return order, np.cumsum(ptr).astype(np.int32)
+
+
+class _Colouring:
+    """A sweep's elements sorted by colour, on the device (kernels.springs_coloured)."""
+
+    def __init__(self, elements: np.ndarray, n_vertices: int, ids: np.ndarray | None = None):
+        order, ptr = colour_order(elements, n_vertices)
+        self.n_colours = len(ptr) - 1
+        self.order = _nd(ti.i32, order if ids is None else ids[order].astype(np.int32))
+        self.ptr = _nd(ti.i32, ptr)
+
+
 def _vertex_lists(owner: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Entries grouped by the vertex that owns them (CSR): per vertex its range in the order
     (n + 1 offsets), and the order (entry indices, stable within a vertex)."""
@@ -92,7 +123,6 @@ class _SpringSet:
         self.comp_c = _nd(REAL, (1.0 / model.k_compression[select]).astype(NP_REAL))
         self.beta = _nd(REAL, model.spring_beta[select].astype(NP_REAL))
         self.lam = _nd(REAL, np.zeros(self.count, NP_REAL))
-        self.out = ti.ndarray(VEC3, max(self.count, 1))
         self.index = np.flatnonzero(select)
 
 
@@ -151,7 +181,6 @@ class ClothSolver:
             self.bcomp = _nd(REAL, (1.0 / model.bend_stiffness).astype(NP_REAL))
             self.bbeta = _nd(REAL, model.bend_beta.astype(NP_REAL))
             self.lam_b = ti.ndarray(VEC3, self.n_bends)
-            self.b_out = ti.ndarray(VEC3, self.n_bends)
         self.n_pins = len(model.pinned) if effects.pins else 0
         if self.n_pins:
             self.pin_idx = _nd(ti.i32, model.pinned.astype(np.int32))
@@ -452,8 +481,12 @@ class XPBDSolver(ClothSolver):
             kw2 = model.bend_weights.astype(np.float64) ** 2
             self.bend_inv_mass = (kw2 * self.w_np.astype(np.float64)[model.bends]).sum(axis=1)
         self.stiff_bends = _nd(ti.i32, np.zeros(1, np.int32))
-        if not self.gauss_seidel:
-            self._build_jacobi_adjacency()
+        if not self.gauss_seidel:  # a parallel backend: coloured sweeps
+            self.spring_colours = {
+                name: _Colouring(model.springs[s.index], self.n) for name, s in self.sets.items()
+            }
+            if self.n_bends:
+                self.bend_colours = _Colouring(model.bends, self.n)
         self._build_fused()
         self._init_active_limit()
 
@@ -552,6 +585,8 @@ class XPBDSolver(ClothSolver):
         ids = self.stiff_bend_ids(h)
         self.n_stiff_bends = len(ids)
         self.stiff_bends = _nd(ti.i32, ids if len(ids) else np.zeros(1, np.int32))
+        if not self.gauss_seidel and len(ids):
+            self.stiff_bend_colours = _Colouring(self.model.bends[ids], self.n, ids)
         self._stiff_h = h
 
     def advance_frame(self, collider, n_sub: int, h: float, profile: bool = False,
@@ -661,26 +696,6 @@ class XPBDSolver(ClothSolver):
             )
         return self._dummy_collider
 
-    def _build_jacobi_adjacency(self) -> None:
-        """Per-vertex lists of signed spring references (per set) and bend slots."""
-        self.jacobi = {}
-        for name, s in self.sets.items():
-            sp = self.model.springs[s.index]
-            ref = np.concatenate([-(np.arange(len(sp)) + 1), np.arange(len(sp))])
-            ptr, order = _vertex_lists(np.concatenate([sp[:, 0], sp[:, 1]]), self.n)
-            self.jacobi[name] = (_nd(ti.i32, ptr), _nd(ti.i32, ref[order].astype(np.int32)))
-        if self.n_bends:
-            slot = np.tile(np.arange(4), self.n_bends)
-            bref = np.repeat(np.arange(self.n_bends), 4)
-            ptr, order = _vertex_lists(self.model.bends.ravel(), self.n)
-            self.jacobi_b = (
-                _nd(ti.i32, ptr),
-                _nd(ti.i32, bref[order].astype(np.int32)),
-                _nd(ti.i32, slot[order].astype(np.int32)),
-            )
-        empty = _nd(ti.i32, np.zeros(self.n + 1, np.int32))
-        self.jacobi_empty = (empty, _nd(ti.i32, np.zeros(1, np.int32)))
-
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
         e = self.effects
         self._use_step(h)
@@ -708,12 +723,10 @@ class XPBDSolver(ClothSolver):
             self._sweep += 1
             # Most bending is soft: one sweep per substep converges it, and the further
             # iterations go to the stiff stretch and shear springs (as in the fused kernel);
-            # bends stiff at this step (STIFF_BEND_RATIO: denim, leather) are swept every time
-            # (the Jacobi path, with no kernel for a subset, then sweeps all bends every time).
+            # bends stiff at this step (STIFF_BEND_RATIO: denim, leather) are swept every time.
             # Bending runs before the springs: its damping reads the sweep's displacement as
             # velocity, and run last (with one iteration) it undid the springs' corrections on
             # a 1 cm cotton sheet at first contact, which grew 30x a frame into a runaway.
-            bend = it == 0 or self.n_stiff_bends > 0
             if self.gauss_seidel:
                 if self.n_bends and it == 0:
                     self._run("bending", K.bends_gauss_seidel, *self._bend_args(),
@@ -742,7 +755,7 @@ class XPBDSolver(ClothSolver):
                         self.settings.sor,
                     )
             else:
-                self._jacobi_iteration(h, bend)
+                self._coloured_iteration(h, it, reverse)
         if self.n_tethers:  # after the sweeps, as in the fused kernel
             self._run("pins", K.apply_tethers, self.x, self.tethers, self.tether_len)
         self._collide(collider, s0, s1, h)
@@ -762,63 +775,26 @@ class XPBDSolver(ClothSolver):
 
     def _bend_args(self) -> tuple:
         """The bending kernels' leading arguments (positions, stencils, weights, compliance,
-        damping, multipliers), shared by the Gauss-Seidel and Jacobi sweeps."""
+        damping, multipliers), shared by the serial and the coloured sweeps."""
         return (self.x, self.xp, self.w, self.bends, self.kw, self.bcomp, self.bbeta, self.lam_b)
 
-    def _jacobi_iteration(self, h: float, bend: bool) -> None:
-        omega = self.settings.jacobi_omega
+    def _coloured_iteration(self, h: float, it: int, reverse: int) -> None:
+        """The Gauss-Seidel branch's sweeps of one iteration on a parallel backend: the same
+        order of effects and the same over-relaxation, each colour one parallel loop."""
+        sor = self.settings.sor
+        bends = None
+        if self.n_bends and it == 0:
+            bends, omega = self.bend_colours, sor
+        elif self.n_stiff_bends:
+            bends, omega = self.stiff_bend_colours, 1.0  # not over-relaxed (see the fused kernel)
+        if bends is not None:
+            self._run("bending", K.bends_coloured, *self._bend_args(), bends.order, bends.ptr, h,
+                      reverse, omega, bends.n_colours)
         for name, s in self.sets.items():
-            self._run(
-                name,
-                K.springs_jacobi,
-                self.x,
-                self.xp,
-                self.w,
-                s.springs,
-                s.rest,
-                s.limit,
-                s.comp_t,
-                s.comp_c,
-                s.beta,
-                s.lam,
-                s.out,
-                h,
-            )
-        bend = bend and self.n_bends > 0
-        if bend:
-            self._run("bending", K.bends_jacobi, *self._bend_args(), self.b_out, h)
-        names = list(self.sets)
-        for k, name in enumerate(names):
-            ptr, ref = self.jacobi[name]
-            bptr, bref, bslot = (
-                self.jacobi_b
-                if (k == 0 and bend)
-                else (self.jacobi_empty[0], self.jacobi_empty[1], self.jacobi_empty[1])
-            )
-            self._run(
-                name,
-                K.apply_jacobi,
-                self.x,
-                self.w,
-                ptr,
-                ref,
-                self.sets[name].out,
-                bptr,
-                bref,
-                bslot,
-                self.b_out if self.n_bends else self.sets[name].out,
-                self.kw if self.n_bends else _dummy_vec4(),
-                omega,
-            )
-
-
-_DUMMY: dict = {}
-
-
-def _dummy_vec4():
-    if "v4" not in _DUMMY:
-        _DUMMY["v4"] = ti.ndarray(VEC4, 1)
-    return _DUMMY["v4"]
+            c = self.spring_colours[name]
+            self._run(name, K.springs_coloured, self.x, self.xp, self.w, s.springs, s.rest,
+                      s.limit, s.comp_t, s.comp_c, s.beta, s.lam, c.order, c.ptr, h, reverse,
+                      sor, c.n_colours)
 
 
 class ExplicitSolver(ClothSolver):

@@ -1,0 +1,51 @@
+"""Runs two small scenes in a process of its own, for tests/test_sim_physics.py: Taichi's thread
+count is fixed once per process (DATAGEN_TI_THREADS), and sweeps are coloured where it is above
+one (a GPU's form of the solver, run on this CPU's threads).
+
+Usage: python tests/parallel_sweeps.py MODE OUT.npz, MODE one of
+  serial    the CPU default (one thread, Gauss-Seidel sweeps in one launch per frame)
+  coloured  coloured sweeps on one thread (serial() overridden)
+  threads   coloured sweeps on two threads (DATAGEN_TI_THREADS=2 set by the caller)
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+
+def main(mode: str, out: str) -> None:
+    from datagen.sim import simulate as simulate_module
+    from datagen.sim import solvers
+
+    if mode == "coloured":  # the solver's sweeps and the presets a parallel backend gets
+        solvers.serial = simulate_module.serial = lambda: False
+    from datagen.sim.scenes import grid_sheet
+    from datagen.sim.simulate import SimOptions, simulate
+    from datagen.study.scenes import build_scene
+
+    # A 1 m leather sheet pinned along one edge swings down (pins, tethers, stiff bends).
+    sheet = grid_sheet(40, 1.0, 1.5, fabric="leather")
+    sheet.pinned = np.flatnonzero(np.isclose(sheet.vertices[:, 0], -0.5))
+    options = SimOptions(frames=30, settle_seconds=0.0, effects="all", strain_refinements=0)
+    swing = simulate([sheet], None, options)
+    # A skirt-like cotton tube on a swinging, twisting cylinder (body contact, friction,
+    # the closest-triangle search, self-collision).
+    scene = build_scene("tube_cylinder", "cotton", "coarse", frames=12)
+    tube = simulate(scene.garments, scene.track,
+                    SimOptions(frames=scene.frames, settle_seconds=0.0, strain_refinements=0))
+    np.savez(
+        out,
+        serial=solvers.serial(),
+        steps=[swing.report["substeps"], swing.report["iterations"]],
+        sheet=swing.vertices[sheet.name],
+        sheet_strain=swing.qa["strain_p999"],
+        tube=tube.vertices[scene.garments[0].name],
+        tube_strain=tube.qa["strain_p999"],
+        tube_deep=tube.qa["deep_share"],
+    )
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], sys.argv[2])
