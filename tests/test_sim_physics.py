@@ -887,20 +887,27 @@ def test_the_strain_limit_after_contact_leaves_no_vertex_it_pulled_into_the_body
     back at the thickness, outside. Without it, the middle column ended 1 cm deep, and at the
     next substep contact pushed it out: the back and forth ran the fast kick's trousers away
     (docs/simulator.md)."""
+    _limit_a_patch_pulled_into_a_plane(
+        lambda model, effects: make_solver("xpbd", model, effects,
+                                           SolverSettings(substeps=20, iterations=4)))
+
+
+def _limit_a_patch_pulled_into_a_plane(make):
+    """The strain limit after contact on the patch of the test above, with the solver that
+    `make(model, effects)` builds; checks that the middle column ends outside the thickness and
+    the pins stay. Returns the solver."""
     sheet = grid_sheet(2, 0.02, 0.0)
     side = np.abs(sheet.vertices[:, 0]) > 0.005
     sheet.pinned = np.flatnonzero(side)
     model = build_cloth_model([(sheet, FABRICS["cotton"])])
-    effects = Effects(pins=True, air_drag=False)
-    solver = make_solver("xpbd", model, effects, SolverSettings(substeps=20, iterations=4))
+    solver = make(model, Effects(pins=True, air_drag=False))
     x = model.x0.copy()
     x[side, 0] *= 2.0
     x[side, 2] = -0.01
     x[~side, 2] = 0.006
     solver.set_state(x, np.zeros_like(x))
     plane = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
-    faces = np.array([[0, 1, 2], [0, 2, 3]])
-    collider = BodyCollider(faces, np.ones(2, bool), 4)
+    collider = BodyCollider(np.array([[0, 1, 2], [0, 2, 3]]), np.ones(2, bool), 4)
     collider.set_frames(plane, plane)
     solver.search(collider, 1.0)
     solver.xp.from_numpy(solver.x.to_numpy())  # the substep started here
@@ -908,6 +915,7 @@ def test_the_strain_limit_after_contact_leaves_no_vertex_it_pulled_into_the_body
     after = solver.get_state()[0]
     assert np.all(after[~side, 2] > 0.004 - 1e-9), after[~side, 2]
     assert np.allclose(after[side], x[side])  # pinned
+    return solver
 
 
 def test_the_limit_after_contact_on_moved_vertices_ends_where_full_sweeps_would_stop():
@@ -1034,3 +1042,66 @@ def test_self_collision_separates_the_layers_of_a_folded_sheet():
     assert len(fold_pairs(after)) == 0
     untouched = np.setdiff1d(np.arange(len(x)), before.ravel())
     assert np.array_equal(after[untouched], x[untouched].astype(np.float32))
+
+
+def _coloured_solver(monkeypatch, model, effects):
+    """An xpbd solver built as on a parallel backend (coloured sweeps), in this process."""
+    from datagen.sim import solvers
+
+    monkeypatch.setattr(solvers, "serial", lambda: False)
+    return make_solver("xpbd", model, effects, SolverSettings(substeps=20, iterations=4))
+
+
+def test_the_coloured_limit_after_contact_holds_the_limit_and_keeps_contact(monkeypatch):
+    """On a parallel backend the strain limit after contact runs as coloured sweeps
+    (parallel_kernels), not as one serial task (one GPU thread: the 4k sheet ran 1.8x slower on
+    an H200, docs/benchmarks.md). The patch of the serial test above, its outer columns pinned
+    1 cm inside a plane and pulled apart: every spring starts past its limit; the sweeps pull the
+    middle column towards the body, and contact afterwards leaves it outside the thickness. The
+    sheet with a fifth of its vertices pulled 4 mm out of place: the sweeps stop only when no
+    spring is more than the tolerance past its limit, as the serial form does; only the
+    vertices they flag move, and the flags are clear when the substep's limit is done."""
+    from datagen.sim import kernels as K
+    from datagen.sim import parallel_kernels as PK
+
+    solver = _limit_a_patch_pulled_into_a_plane(
+        lambda model, effects: _coloured_solver(monkeypatch, model, effects))
+    assert not solver.gauss_seidel and solver.limit_colours.n_colours > 1
+    assert not solver.limit_moved.to_numpy().any()
+
+    sheet = grid_sheet(20, 0.2, 0.0)
+    model = build_cloth_model([(sheet, FABRICS["cotton"])])
+    solver = _coloured_solver(monkeypatch, model, Effects(pins=False, air_drag=False))
+    rng = np.random.default_rng(7)
+    x = model.x0.copy()
+    pulled = rng.random(len(x)) < 0.2
+    x[pulled] += rng.uniform(-0.004, 0.004, (int(pulled.sum()), 3))
+    solver.set_state(x, np.zeros_like(x))
+    x = solver.get_state()[0].astype(np.float64)
+    pairs, lengths = solver.f_springs.to_numpy(), solver.f_limit.to_numpy()
+
+    def worst_excess(pos):
+        return float((np.linalg.norm(pos[pairs[:, 1]] - pos[pairs[:, 0]], axis=1)
+                      / lengths - 1.0).max())
+
+    assert worst_excess(x) > 0.2
+    lc = solver.limit_colours
+    sweeps = []
+    for sweep in range(K.AFTER_CONTACT_SWEEPS):
+        sweeps.append(PK.limit_sweep_coloured(solver.x, solver.w, solver.f_springs,
+                                              solver.f_limit, solver.contact_n, lc.order, lc.ptr,
+                                              solver.limit_worst, solver.limit_moved,
+                                              sweep % 2, lc.n_colours))
+        if sweeps[-1] < K.AFTER_CONTACT_TOLERANCE:
+            break
+    after = solver.get_state()[0].astype(np.float64)
+    assert sweeps[0] > 0.2 and sweeps[-1] < K.AFTER_CONTACT_TOLERANCE, sweeps
+    assert worst_excess(after) < K.AFTER_CONTACT_TOLERANCE
+    moved = solver.limit_moved.to_numpy().astype(bool)
+    assert 0 < moved.sum() < len(x)
+    assert np.array_equal(after[~moved], x[~moved])  # untouched where nothing moved
+    solver._limit_after_contact_coloured(None, 0.0, 1.0, 1.0 / 600.0)
+    # Within the tolerance already: one sweep takes up what is left, under 0.1 % of an edge.
+    assert np.abs(solver.get_state()[0] - after).max() < 1e-5
+    assert solver.launches["strain_limit"] == 1
+    assert not solver.limit_moved.to_numpy().any()  # contact afterwards cleared the flags

@@ -4,7 +4,8 @@ On this project's 2-core CPUs a dataset run uses one single-threaded simulation 
 process (one serial launch per frame); one-off runs may use more threads. The same kernels run on
 a GPU backend (`DATAGEN_TI_ARCH=cuda`) and on more than one CPU thread (`DATAGEN_TI_THREADS`),
 where `serial()` is False and constraint sweeps switch to coloured Gauss-Seidel: one parallel
-loop per colour of constraints that share no vertex.
+loop per colour of constraints that share no vertex. `DATAGEN_TI_PROFILER=1` turns on Taichi's
+kernel profiler (ti.profiler), which times every kernel on the device.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ def init_taichi(arch: str | None = None, threads: int | None = None) -> None:
         log_level=ti.ERROR,
         default_fp=REAL,
         random_seed=0,
+        kernel_profiler=os.environ.get("DATAGEN_TI_PROFILER", "0") not in ("", "0"),
     )
     if arch == "cpu":
         ti.init(arch=ti.cpu, cpu_max_num_threads=max(1, threads), **kwargs)

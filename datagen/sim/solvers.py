@@ -23,9 +23,10 @@ import numpy as np
 import taichi as ti
 
 from datagen.sim import kernels as K
+from datagen.sim import parallel_kernels as PK
 from datagen.sim.backend import init_taichi, serial
 from datagen.sim.effects import Effects
-from datagen.sim.model import SEAM, SHEAR, STRUCTURAL, ClothModel
+from datagen.sim.model import NO_LIMIT, SEAM, SHEAR, STRUCTURAL, ClothModel
 from datagen.sim.precision import NP_REAL, REAL, VEC3, VEC4
 
 # A bend is stiff at step h when its compliance over h^2 is below its generalised inverse mass
@@ -489,6 +490,8 @@ class XPBDSolver(ClothSolver):
                 self.bend_colours = _Colouring(model.bends, self.n)
         self._build_fused()
         self._init_active_limit()
+        if not self.gauss_seidel:
+            self._init_coloured_limit()
 
     def _init_active_limit(self) -> None:
         """The arrays of kernels.limit_after_contact_active, over the fused springs (seams and
@@ -501,12 +504,30 @@ class XPBDSolver(ClothSolver):
         self.limit_adj = _nd(ti.i32, np.concatenate([ptr, spring[order]]).astype(np.int32))
         self.limit_lists = _nd(ti.i32, np.zeros(5 * self.n + 2, np.int32))
 
+    def _init_coloured_limit(self) -> None:
+        """The arrays of the coloured strain limit after contact (parallel_kernels): the
+        limited fused springs by colour, a sweep's largest excess, the moved vertices' flags."""
+        limited = np.flatnonzero(self.f_limit.to_numpy()[: self.f_count] < NO_LIMIT)
+        pairs = self.f_springs.to_numpy()[limited] if len(limited) else np.zeros((0, 2), int)
+        self.limit_colours = _Colouring(pairs, self.n, limited.astype(np.int32))
+        self.limit_worst = _nd(REAL, np.zeros(1, NP_REAL))
+        self.limit_moved = _nd(ti.i32, np.zeros(self.n, np.int32))
+
     def _limit_after_contact(self, collider, s0: float, s1: float, h: float) -> None:
         """As ClothSolver's, with the sweeps after the first on the springs around what moved
-        (kernels.limit_after_contact_active), and contact again on the vertices they moved."""
+        (kernels.limit_after_contact_active), and contact again on the vertices they moved. On
+        a parallel backend, coloured sweeps instead (_limit_after_contact_coloured)."""
         body = collider is not None and self.effects.body_collision
         if not (self.f_nsets and (body or self.use_layers)):
             return
+        if not self.gauss_seidel:
+            return self._limit_after_contact_coloured(collider if body else None, s0, s1, h)
+        self._limit_after_contact_listed(collider, s0, s1, h, body)
+
+    def _limit_after_contact_listed(self, collider, s0: float, s1: float, h: float,
+                                    body: bool) -> None:
+        """The serial form: one task that sweeps the springs around what the last sweep
+        moved (kernels.limit_after_contact_listed), then contact for the moved vertices."""
         t = time.perf_counter()
         n_moved = K.limit_after_contact_listed(self.x, self.w, self.f_springs, self.f_limit,
                                                self.contact_n, self.limit_adj, self.limit_lists)
@@ -517,6 +538,27 @@ class XPBDSolver(ClothSolver):
                   c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, s0, s1, self.thickness,
                   self.friction, self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n,
                   self.contact_v, h, self.limit_lists, n_moved, body)
+
+    def _limit_after_contact_coloured(self, collider, s0: float, s1: float, h: float) -> None:
+        """The strain limit after contact on a parallel backend: coloured sweeps, then contact
+        again for what they moved (parallel_kernels)."""
+        lc = self.limit_colours
+        if not lc.n_colours:
+            return
+        t = time.perf_counter()
+        for sweep in range(K.AFTER_CONTACT_SWEEPS):
+            worst = PK.limit_sweep_coloured(self.x, self.w, self.f_springs, self.f_limit,
+                                            self.contact_n, lc.order, lc.ptr, self.limit_worst,
+                                            self.limit_moved, sweep % 2, lc.n_colours)
+            self.launches["strain_limit"] += 1
+            if worst < K.AFTER_CONTACT_TOLERANCE:
+                break
+        self.costs["strain_limit"] += time.perf_counter() - t
+        c = collider if collider is not None else self._placeholder_collider()
+        self._run("body_collision", PK.collide_moved, self.x, self.xp, self.w, self.tri,
+                  c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, s0, s1, self.thickness,
+                  self.friction, self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n,
+                  self.contact_v, h, self.limit_moved, collider is not None)
 
     def _build_fused(self) -> None:
         """All spring sets in one array, in the order the per-effect kernels visit them."""
