@@ -1,7 +1,8 @@
 """`make bench`: every benchmark in turn; each writes its own section of docs/benchmarks.md.
 
 `--quick` leaves out the long ones (the full hard cases and the dataset runs; the accuracy study
-is its own command, `datagen bench accuracy`)."""
+is its own command, `datagen bench accuracy`). `bench_gpu` is not among them: it runs on a machine
+with a GPU (its docstring says how)."""
 
 from __future__ import annotations
 

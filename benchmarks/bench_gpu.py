@@ -1,0 +1,339 @@
+"""The cloth simulator on a GPU: our default solver on a machine's GPU against one thread of the
+same machine's CPU, timed in one run.
+
+On a GPU (or several CPU threads) the xpbd sweeps are coloured Gauss-Seidel (docs/simulator.md)
+and each preset runs twice the substeps and iterations; on one CPU thread, the serial sweeps in
+one launch per frame. Both run the same scenes with the peer's effects (bench_sim), over
+RATE_FRAMES frames after their kernels are compiled.
+
+This project's machines have no GPU, so the benchmark has two halves:
+
+    python -m benchmarks.bench_gpu --save-tshirt T.pkl  # here: the t-shirt scene (Anny)
+    python -m benchmarks.bench_gpu --run OUT_DIR --tshirt T.pkl  # on the GPU machine (minutes)
+    python -m benchmarks.bench_gpu --report OUT_DIR     # here: errors, docs/benchmarks.md
+
+`--run` starts one process per backend (both at once: the CPU run takes one core of many) and
+writes their figures and trajectories to OUT_DIR. `--report` measures each trajectory against
+the float64 reference of bench_sim (implicit, REF_SUBSTEPS per frame, over the predictable
+horizon), computed here, and writes the section. The walking t-shirt is read from a pickled
+study scene (`--tshirt FILE`: its body comes from Anny, which the GPU machine need not have).
+The GPU machine needs Taichi, trimesh and rtree besides what the project's code imports; the
+figures of the last run, with their errors, are in benchmarks/results/gpu/summary.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+COMMAND = "python -m benchmarks.bench_gpu"
+# (scene, fabric, resolution): the peer scenes of bench_sim that span its sizes and stiffness.
+CASES = [("sheet_sphere", "cotton", "4k"), ("sheet_sphere", "cotton", "10k"),
+         ("tube_cylinder", "denim", "5k")]
+TSHIRT = ("tshirt_walk", "cotton", "")
+PROFILE_FRAMES = 5
+# Batches: copies of the 4k cotton sheet on its sphere, 1.5 m apart, simulated as one scene
+# (their cloth and spheres never meet): how a GPU's cost grows with the work in each launch.
+BATCH_FRAMES = 15
+BATCHES = {"cuda": (1, 4, 16, 64), "cpu": (1, 4, 16)}
+RATE_FRAMES = int(os.environ.get("DATAGEN_BENCH_GPU_FRAMES", "30"))  # a quick check sets fewer
+ERROR_FRAMES = 16
+REF_SUBSTEPS = 160
+
+
+def batched_sheets(copies: int, frames: int):
+    """`copies` 4k cotton sheets falling on their spheres, side by side, as one study scene."""
+    from dataclasses import replace
+
+    from datagen.sim.scenes import grid_sheet, icosphere
+    from datagen.sim.simulate import ColliderTrack
+    from datagen.study.scenes import FPS, SHEET_SIZES, StudyScene
+
+    sheets, verts, faces = [], [], []
+    for k in range(copies):
+        shift = np.array([1.5 * k, 0.0, 0.0])
+        sheet = grid_sheet(SHEET_SIZES["4k"], 1.0, 0.5, name=f"sheet{k}", fabric="cotton")
+        sheets.append(replace(sheet, vertices=sheet.vertices + shift))
+        sv, sf = icosphere(0.25, 4)
+        faces.append(sf + sum(len(v) for v in verts))
+        verts.append(sv + shift)
+    sv, sf = np.concatenate(verts), np.concatenate(faces)
+    track = ColliderTrack(np.repeat(sv[None], frames + 1, axis=0), sf, np.ones(len(sf), bool),
+                          FPS)
+    return StudyScene("sheet_batch", "cotton", f"{copies}x4k", sheets, track, frames, frames,
+                      frames)
+
+
+def _worker(arch: str, out: Path, tshirt: str | None, mode: str) -> None:
+    """Run every case on one backend in this process (Taichi's backend is fixed per process).
+    Modes: `cases` (CASES and the t-shirt); `profile`, the first case over PROFILE_FRAMES with
+    Taichi's kernel profiler (how much of the wall time the device spends in kernels, and in
+    which); `batch`, batched_sheets at each of BATCHES; `serial_limit`, the first case with the
+    strain limit after contact in its serial form (one task) instead of coloured sweeps."""
+    os.environ["DATAGEN_TI_ARCH"] = arch
+    profile = mode == "profile"
+    if profile:
+        os.environ["DATAGEN_TI_PROFILER"] = "1"
+    import pickle
+
+    import taichi as ti
+
+    from datagen.sim.backend import arch as backend_arch
+    from datagen.sim.backend import serial
+    from datagen.sim.simulate import PARALLEL_QUALITY_PRESETS, QUALITY_PRESETS, ColliderTrack
+    from datagen.study import run as study_run
+    from datagen.study.run import run_ours
+    from datagen.study.scenes import build_scene
+
+    presets = QUALITY_PRESETS if serial() else PARALLEL_QUALITY_PRESETS
+    sub, it = presets["xpbd"]["default"]
+    cases = [(name, fabric, res, None) for name, fabric, res in CASES]
+    if tshirt:
+        cases.append((*TSHIRT, tshirt))
+    if mode == "batch":
+        rows = []
+        for copies in BATCHES[arch]:
+            scene = batched_sheets(copies, BATCH_FRAMES)
+            study_run._WARM.clear()  # each batch compiles before it is timed
+            run = run_ours(scene, "xpbd", sub, it)
+            rows.append({"copies": copies, "vertices": scene.n_vertices,
+                         "s_per_sim_s": run.seconds_per_simulated_second,
+                         "finite": bool(np.isfinite(run.positions).all())})
+            print(json.dumps(rows[-1]), flush=True)
+        out.write_text(json.dumps(rows, indent=1))
+        return
+    if mode == "serial_limit":
+        from datagen.sim.solvers import XPBDSolver
+
+        def listed(self, collider, s0, s1, h):
+            self._limit_after_contact_listed(collider, s0, s1, h, collider is not None)
+
+        XPBDSolver._limit_after_contact_coloured = listed
+        cases = cases[:1]
+    if profile:
+        name, fabric, res, _ = cases[0]
+        scene = build_scene(name, fabric, res, frames=PROFILE_FRAMES)
+        run_ours(scene, "xpbd", sub, it)  # compiles
+        ti.profiler.clear_kernel_profiler_info()
+        run = run_ours(scene, "xpbd", sub, it)
+        ti.sync()
+        kernels = ti.profiler.get_kernel_profiler_total_time()
+        out.write_text(json.dumps({"arch": backend_arch(), "scene": f"{name} {res} {fabric}",
+                                   "frames": PROFILE_FRAMES, "substeps": sub,
+                                   "wall": run.wall, "kernel_time": kernels}))
+        ti.profiler.print_kernel_profiler_info("count")
+        return
+    rows, arrays = [], {}
+    for name, fabric, res, path in cases:
+        if path:
+            with open(path, "rb") as f:
+                scene = pickle.load(f)
+            track = scene.track
+            scene.track = ColliderTrack(track.vertices[: RATE_FRAMES + 1], track.faces,
+                                        track.face_mask, track.fps)
+            scene.frames = RATE_FRAMES
+        else:
+            scene = build_scene(name, fabric, res, frames=RATE_FRAMES)
+        # run_ours warms up once per scene name: each case compiles its own kernels (a
+        # parallel backend's sweeps are compiled per count of colours) before it is timed.
+        study_run._WARM.clear()
+        t = time.perf_counter()
+        run = run_ours(scene, "xpbd", sub, it)
+        key = f"{name}_{fabric}_{res}"
+        rows.append({
+            "key": key, "name": name, "res": res, "scene": f"{name} {res}".strip(),
+            "fabric": fabric,
+            "vertices": scene.n_vertices, "arch": backend_arch(), "substeps": sub,
+            "iterations": it, "wall": run.wall, "simulated": run.simulated,
+            "s_per_sim_s": run.seconds_per_simulated_second,
+            "with_compile_s": time.perf_counter() - t,
+            "finite": bool(np.isfinite(run.positions).all()),
+            "strain_p999_max": float(np.max(run.qa["strain_p999"])),
+            "over_strain_max": float(np.max(run.qa["over_strain_share"])),
+            "deep_max": float(np.max(run.qa["deep_share"])),
+            "ke_max": float(np.max(run.qa["kinetic_energy"])),
+        })
+        arrays[key] = run.positions[: ERROR_FRAMES + 1].astype(np.float32)
+        print(json.dumps(rows[-1]), flush=True)
+    np.savez_compressed(out.with_suffix(".npz"), **arrays)
+    out.write_text(json.dumps(rows, indent=1))
+
+
+def run_all(out_dir: Path, tshirt: str | None) -> None:
+    """Both backends at once, each in a process of its own."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ, PYTHONWARNINGS="ignore", PYTHONUNBUFFERED="1")
+    procs = []
+    for arch in ("cuda", "cpu"):
+        cmd = [sys.executable, "-m", "benchmarks.bench_gpu", "--worker", arch,
+               "--out", str(out_dir / f"{arch}.json")]
+        if tshirt:
+            cmd += ["--tshirt", tshirt]
+        procs.append(subprocess.Popen(cmd, env=env))
+    codes = [p.wait() for p in procs]
+    if any(codes):
+        raise SystemExit(f"a backend's run failed (exit codes {codes})")
+    # Then, alone on the GPU: batches (both backends at once), the serial limit's cost, and the
+    # profiled run (the profiler's timing would slow the timed ones).
+    procs = [subprocess.Popen([sys.executable, "-m", "benchmarks.bench_gpu", "--worker", arch,
+                               "--mode", "batch", "--out", str(out_dir / f"batch_{arch}.json")],
+                              env=env) for arch in ("cuda", "cpu")]
+    if any(p.wait() for p in procs):
+        raise SystemExit("a batch run failed")
+    for mode in ("serial_limit", "profile"):
+        subprocess.run([sys.executable, "-m", "benchmarks.bench_gpu", "--worker", "cuda",
+                        "--mode", mode, "--out", str(out_dir / f"{mode}.json")], env=env,
+                       check=True)
+    machine = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+                             capture_output=True, text=True).stdout.strip()
+    (out_dir / "machine.json").write_text(json.dumps(
+        {"gpu": machine, "cpu_cores": os.cpu_count(), "date": time.strftime("%Y-%m-%d"),
+         "python": sys.version.split()[0]}))
+
+
+def _reference(row: dict, out_dir: Path) -> tuple[np.ndarray, int]:
+    """The float64 reference of a case and its predictable horizon (bench_sim's), kept in
+    out_dir as ref_<key>.npz: each costs minutes here."""
+    from datagen.study.sweep import TWIN_METRES, predictable_frames, run_worker
+
+    path = out_dir / f"ref_{row['key']}.npz"
+    if not path.exists():
+        args = (row["name"], row["fabric"], row["res"], "implicit", REF_SUBSTEPS, 20, True,
+                ERROR_FRAMES)
+        ref = run_worker(*args)["positions"]
+        twin = run_worker(*args, TWIN_METRES)["positions"]
+        np.savez_compressed(path, ref=ref, horizon=predictable_frames(ref, twin))
+    d = np.load(path)
+    return d["ref"], int(d["horizon"])
+
+
+def report(out_dir: Path) -> None:
+    """The section of docs/benchmarks.md from a --run folder, and the figures with their errors
+    as summary.json in it."""
+    from benchmarks.common import write_section
+    from datagen.study.metrics import rms_distance
+
+    def load(name: str):
+        return json.loads((out_dir / f"{name}.json").read_text())
+
+    rows = {a: load(a) for a in ("cuda", "cpu")}
+    pos = {a: np.load(out_dir / f"{a}.npz") for a in ("cuda", "cpu")}
+    machine, profile, limit = load("machine"), load("profile"), load("serial_limit")[0]
+    batches = {a: load(f"batch_{a}") for a in ("cuda", "cpu")}
+    g0, c0 = rows["cuda"][0], rows["cpu"][0]
+    lines = [
+        f"Measured on {machine['gpu']} and one thread of the same machine's CPU "
+        f"({machine['cpu_cores']} cores), {machine['date']}, in one call (`{COMMAND} --run`), "
+        f"{RATE_FRAMES} frames at 30 fps after compiling; the GPU and CPU runs at once (the CPU "
+        "run takes one core of many). GPU: xpbd with coloured sweeps at the parallel `default` "
+        f"preset ({g0['substeps']} substeps x {g0['iterations']} iterations, docs/simulator.md); "
+        f"CPU: the serial sweeps at `default` ({c0['substeps']}x{c0['iterations']}) in one "
+        "launch per frame. Both with the peer's effects (bench_sim). Errors: RMS distance to "
+        f"bench_sim's float64 implicit reference ({REF_SUBSTEPS} substeps) over its predictable "
+        f"horizon, computed on this project's machine (`{COMMAND} --report`).",
+        "",
+        "| scene | fabric | vertices | GPU s/sim-s | CPU s/sim-s | GPU rate / CPU rate | "
+        "GPU error mm | CPU error mm | horizon (frames) | GPU strain p99.9 | CPU strain p99.9 |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    summary = []
+    for g, c in zip(rows["cuda"], rows["cpu"], strict=True):
+        eg = ec = float("nan")
+        h = "-"
+        if not g["key"].startswith("tshirt"):
+            ref, h = _reference(g, out_dir)
+            eg, ec = (1000 * rms_distance(pos[a][g["key"]].astype(np.float64), ref, h)
+                      for a in ("cuda", "cpu"))
+        summary.append({"gpu": g, "cpu": c, "gpu_error_mm": eg, "cpu_error_mm": ec,
+                        "horizon": h})
+        lines.append(
+            f"| {g['scene']} | {g['fabric']} | {g['vertices']} | {g['s_per_sim_s']:.2f} | "
+            f"{c['s_per_sim_s']:.2f} | {c['s_per_sim_s'] / g['s_per_sim_s']:.2f}x | "
+            f"{eg:.2f} | {ec:.2f} | {h} | {g['strain_p999_max']:.3f} | "
+            f"{c['strain_p999_max']:.3f} |")
+    share = profile["kernel_time"] / profile["wall"]
+    lines += [
+        "",
+        "The walking t-shirt has no float64 reference here (hours of CPU); its strain and depth "
+        "stay within bounds on both (no edge over the bound, no vertex too deep).",
+        "",
+        f"Where the GPU's time goes (Taichi's kernel profiler, {profile['scene']}, "
+        f"{profile['frames']} frames): the device ran kernels for {profile['kernel_time']:.2f} "
+        f"of {profile['wall']:.2f} s ({100 * share:.0f} %), 6-12 us a kernel whether it "
+        "moves a thousand springs or none; the rest is launching them: 30-40 calls from "
+        "Python a substep (one per effect and sweep, each a few kernels, one a colour). The "
+        "strain limit after contact as one serial task (the CPU's form; the serial_limit run, "
+        f"alone on the GPU) ran the same scene at {limit['s_per_sim_s']:.2f} s/sim-s against "
+        f"{g0['s_per_sim_s']:.2f} with coloured sweeps.",
+        "",
+        f"Batches: copies of the 4k cotton sheet on its sphere side by side as one scene, "
+        f"{BATCH_FRAMES} frames (the GPU's and the CPU's batches at once):",
+        "",
+        "| copies | vertices | GPU s/sim-s | CPU s/sim-s | GPU s/sim-s per copy | "
+        "GPU rate / CPU rate |",
+        "|---|---|---|---|---|---|",
+    ]
+    cpu_batch = {b["copies"]: b for b in batches["cpu"]}
+    for b in batches["cuda"]:
+        cb = cpu_batch.get(b["copies"])
+        cpu = f"{cb['s_per_sim_s']:.2f}" if cb else "-"
+        ratio = f"{cb['s_per_sim_s'] / b['s_per_sim_s']:.2f}x" if cb else "-"
+        lines.append(f"| {b['copies']} | {b['vertices']} | {b['s_per_sim_s']:.2f} | {cpu} | "
+                     f"{b['s_per_sim_s'] / b['copies']:.3f} | {ratio} |")
+    widest = batches["cuda"][-1]
+    one_cpu = cpu_batch[1]["s_per_sim_s"]
+    lines += [
+        "",
+        f"One scene on the GPU is {c0['s_per_sim_s'] / g0['s_per_sim_s']:.2f}-"
+        f"{max(r['cpu']['s_per_sim_s'] / r['gpu']['s_per_sim_s'] for r in summary):.2f}x "
+        "the rate of one CPU thread: launch-bound, slower than the serial path at every size "
+        f"measured. Batched, the GPU's cost hardly grows: {widest['copies']} sheets at once "
+        f"cost {widest['s_per_sim_s'] / widest['copies']:.3f} s per simulated second each, "
+        f"{one_cpu * widest['copies'] / widest['s_per_sim_s']:.1f}x one CPU thread's rate "
+        "for one sheet (measured in the same run).",
+    ]
+    (out_dir / "summary.json").write_text(json.dumps(
+        {"machine": machine, "cases": summary, "profile": profile, "serial_limit": limit,
+         "batches": batches}, indent=1))
+    write_section("gpu", "Cloth simulator on a GPU", "\n".join(lines),
+                  f"{COMMAND} --run DIR (on the GPU machine), then {COMMAND} --report DIR")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run", type=Path, help="run both backends, figures into this folder")
+    parser.add_argument("--report", type=Path, help="write the section from a --run folder")
+    parser.add_argument("--worker", choices=["cuda", "cpu"], help=argparse.SUPPRESS)
+    parser.add_argument("--mode", default="cases", help=argparse.SUPPRESS)
+    parser.add_argument("--out", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--tshirt", help="a pickled study scene of the walking t-shirt")
+    parser.add_argument("--save-tshirt", type=Path, help="pickle that scene (needs Anny)")
+    args = parser.parse_args(argv)
+    if args.worker:
+        _worker(args.worker, args.out, args.tshirt, args.mode)
+    elif args.run:
+        run_all(args.run, args.tshirt)
+    elif args.report:
+        report(args.report)
+    elif args.save_tshirt:
+        import pickle
+
+        from datagen.study.scenes import build_scene
+
+        scene = build_scene(TSHIRT[0], TSHIRT[1], frames=RATE_FRAMES)
+        with open(args.save_tshirt, "wb") as f:
+            pickle.dump(scene, f, protocol=5)
+    else:
+        parser.error("one of --run, --report or --save-tshirt")
+
+
+if __name__ == "__main__":
+    main()
