@@ -8,15 +8,16 @@ RATE_FRAMES frames after their kernels are compiled.
 
 This project's machines have no GPU, so the benchmark has two halves:
 
-    python -m benchmarks.bench_gpu --save-tshirt T.pkl  # here: the t-shirt scene (Anny)
-    python -m benchmarks.bench_gpu --run OUT_DIR --tshirt T.pkl  # on the GPU machine (minutes)
-    python -m benchmarks.bench_gpu --report OUT_DIR     # here: errors, docs/benchmarks.md
+    python -m benchmarks.bench_gpu --save-scenes SCENES  # here: the body scenes (Anny)
+    python -m benchmarks.bench_gpu --run OUT_DIR --scenes SCENES  # on the GPU machine
+    python -m benchmarks.bench_gpu --report OUT_DIR      # here: errors, docs/benchmarks.md
 
 `--run` starts one process per backend (both at once: the CPU run takes one core of many) and
 writes their figures and trajectories to OUT_DIR. `--report` measures each trajectory against
 the float64 reference of bench_sim (implicit, REF_SUBSTEPS per frame, over the predictable
-horizon), computed here, and writes the section. The walking t-shirt is read from a pickled
-study scene (`--tshirt FILE`: its body comes from Anny, which the GPU machine need not have).
+horizon), computed here, and writes the section. The scenes with a body (the walking t-shirt,
+HARD_CASES) are pickled here by `--save-scenes`: their bodies come from Anny, which the GPU
+machine need not have.
 The GPU machine needs Taichi, trimesh and rtree besides what the project's code imports; the
 figures of the last run, with their errors, are in benchmarks/results/gpu/summary.json.
 """
@@ -34,10 +35,14 @@ from pathlib import Path
 import numpy as np
 
 COMMAND = "python -m benchmarks.bench_gpu"
+REPO = Path(__file__).resolve().parents[1]
 # (scene, fabric, resolution): the peer scenes of bench_sim that span its sizes and stiffness.
 CASES = [("sheet_sphere", "cotton", "4k"), ("sheet_sphere", "cotton", "10k"),
          ("tube_cylinder", "denim", "5k")]
 TSHIRT = ("tshirt_walk", "cotton", "")
+# Hard cases (pipelines/hard_cases.yaml, full versions) run on both backends: the layered outfit
+# (garment-garment collision) and the fast kick, the hardest for the strain bound.
+HARD_CASES = ("tshirt_over_trousers", "fast_kick")
 PROFILE_FRAMES = 5
 # Batches: copies of the 4k cotton sheet on its sphere, 1.5 m apart, simulated as one scene
 # (their cloth and spheres never meet): how a GPU's cost grows with the work in each launch.
@@ -71,7 +76,69 @@ def batched_sheets(copies: int, frames: int):
                       frames)
 
 
-def _worker(arch: str, out: Path, tshirt: str | None, mode: str) -> None:
+def save_scenes(folder: Path) -> None:
+    """The body scenes, made here (Anny): the walking t-shirt's study scene, and each hard
+    case's garments, body sequence and simulation options as the pipeline hands them to the
+    simulator (pipeline.stages.run_sequence without its simulation)."""
+    import pickle
+    from dataclasses import replace
+
+    from datagen.body.anny_model import default_body_model
+    from datagen.pipeline.hard_cases import case_spec, load_hard_cases
+    from datagen.pipeline.stages import run_sequence, sim_options_from_spec
+    from datagen.study.scenes import build_scene
+
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / "tshirt.pkl", "wb") as f:
+        pickle.dump(build_scene(TSHIRT[0], TSHIRT[1], frames=RATE_FRAMES), f, protocol=5)
+    cases = load_hard_cases(REPO / "pipelines" / "hard_cases.yaml")
+    model = default_body_model()
+    for case in (c for c in cases.cases if c.name in HARD_CASES):
+        spec = case_spec(case, False, cases)
+        record = run_sequence(spec, model, base_dir=REPO, simulate_cloth=False)
+        body = replace(record.body, skinning=None)  # the simulator reads the vertices
+        with open(folder / f"hard_{case.name}.pkl", "wb") as f:
+            pickle.dump({"name": case.name, "garments": record.garments, "body": body,
+                         "options": sim_options_from_spec(spec)}, f, protocol=5)
+
+
+def _hard_case_rows(scenes: Path) -> list[dict]:
+    """Each saved hard case through the simulator on this process's backend, judged as
+    bench_hard_cases judges it."""
+    import pickle
+    from types import SimpleNamespace
+
+    from datagen.errors import RejectedSequence
+    from datagen.pipeline.hard_cases import judge, load_hard_cases
+    from datagen.sim.simulate import simulate
+
+    cases = {c.name: c for c in load_hard_cases(REPO / "pipelines" / "hard_cases.yaml").cases}
+    rows = []
+    for name in HARD_CASES:
+        path = scenes / f"hard_{name}.pkl"
+        if not path.exists():
+            continue
+        with open(path, "rb") as f:
+            saved = pickle.load(f)
+        t = time.perf_counter()
+        try:
+            sim = simulate(saved["garments"], saved["body"], saved["options"])
+            record = SimpleNamespace(status="ok", sim=sim, garments=saved["garments"])
+        except RejectedSequence as exc:
+            record = SimpleNamespace(status="rejected", stage=exc.stage, reason=exc.reason)
+        result = judge(cases[name], record)
+        rows.append({"case": name, "passed": result.passed, "detail": result.detail,
+                     "frames": result.frames, "vertices": result.vertices,
+                     "retries": result.retries, "strain_p999_max": result.strain_p999_max,
+                     "strain_share_max": result.strain_share_max,
+                     "deep_share_max": result.deep_share_max,
+                     "kinetic_per_kg_max": result.kinetic_per_kg_max,
+                     "wall_s": time.perf_counter() - t})
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
     """Run every case on one backend in this process (Taichi's backend is fixed per process).
     Modes: `cases` (CASES and the t-shirt); `profile`, the first case over PROFILE_FRAMES with
     Taichi's kernel profiler (how much of the wall time the device spends in kernels, and in
@@ -95,8 +162,12 @@ def _worker(arch: str, out: Path, tshirt: str | None, mode: str) -> None:
     presets = QUALITY_PRESETS if serial() else PARALLEL_QUALITY_PRESETS
     sub, it = presets["xpbd"]["default"]
     cases = [(name, fabric, res, None) for name, fabric, res in CASES]
-    if tshirt:
+    tshirt = scenes / "tshirt.pkl" if scenes else None
+    if tshirt and tshirt.exists():
         cases.append((*TSHIRT, tshirt))
+    if mode == "hard":
+        out.write_text(json.dumps(_hard_case_rows(scenes), indent=1))
+        return
     if mode == "batch":
         rows = []
         for copies in BATCHES[arch]:
@@ -166,27 +237,31 @@ def _worker(arch: str, out: Path, tshirt: str | None, mode: str) -> None:
     out.write_text(json.dumps(rows, indent=1))
 
 
-def run_all(out_dir: Path, tshirt: str | None) -> None:
-    """Both backends at once, each in a process of its own."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ, PYTHONWARNINGS="ignore", PYTHONUNBUFFERED="1")
+def _both_backends(mode: str, out_dir: Path, scenes: Path | None, env: dict) -> None:
+    """A worker mode on the GPU and on one CPU thread at once, each in a process of its own."""
     procs = []
     for arch in ("cuda", "cpu"):
-        cmd = [sys.executable, "-m", "benchmarks.bench_gpu", "--worker", arch,
-               "--out", str(out_dir / f"{arch}.json")]
-        if tshirt:
-            cmd += ["--tshirt", tshirt]
+        name = arch if mode == "cases" else f"{mode}_{arch}"
+        cmd = [sys.executable, "-m", "benchmarks.bench_gpu", "--worker", arch, "--mode", mode,
+               "--out", str(out_dir / f"{name}.json")]
+        if scenes:
+            cmd += ["--scenes", str(scenes)]
         procs.append(subprocess.Popen(cmd, env=env))
     codes = [p.wait() for p in procs]
     if any(codes):
-        raise SystemExit(f"a backend's run failed (exit codes {codes})")
-    # Then, alone on the GPU: batches (both backends at once), the serial limit's cost, and the
-    # profiled run (the profiler's timing would slow the timed ones).
-    procs = [subprocess.Popen([sys.executable, "-m", "benchmarks.bench_gpu", "--worker", arch,
-                               "--mode", "batch", "--out", str(out_dir / f"batch_{arch}.json")],
-                              env=env) for arch in ("cuda", "cpu")]
-    if any(p.wait() for p in procs):
-        raise SystemExit("a batch run failed")
+        raise SystemExit(f"a backend's {mode} run failed (exit codes {codes})")
+
+
+def run_all(out_dir: Path, scenes: Path | None) -> None:
+    """Every measurement, both backends at once where both run."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ, PYTHONWARNINGS="ignore", PYTHONUNBUFFERED="1")
+    _both_backends("cases", out_dir, scenes, env)
+    if scenes:
+        _both_backends("hard", out_dir, scenes, env)
+    _both_backends("batch", out_dir, scenes, env)
+    # Alone on the GPU: the serial limit's cost, and the profiled run (the profiler's timing
+    # would slow the timed ones).
     for mode in ("serial_limit", "profile"):
         subprocess.run([sys.executable, "-m", "benchmarks.bench_gpu", "--worker", "cuda",
                         "--mode", mode, "--out", str(out_dir / f"{mode}.json")], env=env,
@@ -287,6 +362,26 @@ def report(out_dir: Path) -> None:
         ratio = f"{cb['s_per_sim_s'] / b['s_per_sim_s']:.2f}x" if cb else "-"
         lines.append(f"| {b['copies']} | {b['vertices']} | {b['s_per_sim_s']:.2f} | {cpu} | "
                      f"{b['s_per_sim_s'] / b['copies']:.3f} | {ratio} |")
+    hard = {a: load(f"hard_{a}") for a in ("cuda", "cpu")
+            if (out_dir / f"hard_{a}.json").exists()}
+    if hard:
+        lines += [
+            "",
+            "Hard cases (pipelines/hard_cases.yaml, full versions, judged as bench_hard_cases "
+            "judges them; both backends at once, in a call of their own):",
+            "",
+            "| case | backend | vertices | edges over bound (max) | vertices too deep (max) | "
+            "strain p99.9 | KE max J/kg | retries | wall s | verdict |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for g, c in zip(hard["cuda"], hard["cpu"], strict=True):
+            for label, r in (("GPU", g), ("CPU, one thread", c)):
+                lines.append(
+                    f"| {r['case']} | {label} | {r['vertices']} | "
+                    f"{100 * r['strain_share_max']:.3f} % | {100 * r['deep_share_max']:.3f} % | "
+                    f"{r['strain_p999_max']:.3f} | {r['kinetic_per_kg_max']:.2f} | "
+                    f"{r['retries']} | {r['wall_s']:.0f} | "
+                    f"{'pass' if r['passed'] else 'FAIL: ' + r['detail']} |")
     widest = batches["cuda"][-1]
     one_cpu = cpu_batch[1]["s_per_sim_s"]
     lines += [
@@ -301,7 +396,7 @@ def report(out_dir: Path) -> None:
     ]
     (out_dir / "summary.json").write_text(json.dumps(
         {"machine": machine, "cases": summary, "profile": profile, "serial_limit": limit,
-         "batches": batches}, indent=1))
+         "batches": batches, "hard_cases": hard}, indent=1))
     write_section("gpu", "Cloth simulator on a GPU", "\n".join(lines),
                   f"{COMMAND} --run DIR (on the GPU machine), then {COMMAND} --report DIR")
 
@@ -314,25 +409,21 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--worker", choices=["cuda", "cpu"], help=argparse.SUPPRESS)
     parser.add_argument("--mode", default="cases", help=argparse.SUPPRESS)
     parser.add_argument("--out", type=Path, help=argparse.SUPPRESS)
-    parser.add_argument("--tshirt", help="a pickled study scene of the walking t-shirt")
-    parser.add_argument("--save-tshirt", type=Path, help="pickle that scene (needs Anny)")
+    parser.add_argument("--scenes", type=Path,
+                        help="with --run: the folder --save-scenes wrote (body scenes)")
+    parser.add_argument("--save-scenes", type=Path,
+                        help="pickle the body scenes into this folder (needs Anny)")
     args = parser.parse_args(argv)
     if args.worker:
-        _worker(args.worker, args.out, args.tshirt, args.mode)
+        _worker(args.worker, args.out, args.scenes, args.mode)
     elif args.run:
-        run_all(args.run, args.tshirt)
+        run_all(args.run, args.scenes)
     elif args.report:
         report(args.report)
-    elif args.save_tshirt:
-        import pickle
-
-        from datagen.study.scenes import build_scene
-
-        scene = build_scene(TSHIRT[0], TSHIRT[1], frames=RATE_FRAMES)
-        with open(args.save_tshirt, "wb") as f:
-            pickle.dump(scene, f, protocol=5)
+    elif args.save_scenes:
+        save_scenes(args.save_scenes)
     else:
-        parser.error("one of --run, --report or --save-tshirt")
+        parser.error("one of --run, --report or --save-scenes")
 
 
 if __name__ == "__main__":
