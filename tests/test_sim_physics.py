@@ -1007,14 +1007,21 @@ def test_simulate_rejects_a_bad_effects_request_before_any_work(tmp_path, monkey
     assert not out.exists()
 
 
-def test_self_collision_separates_the_layers_of_a_folded_sheet():
+@pytest.mark.parametrize("parallel", [False, True], ids=["serial", "parallel"])
+def test_self_collision_separates_the_layers_of_a_folded_sheet(monkeypatch, parallel):
     """A sheet folded onto itself, its upper layer 0.4 radius above the lower one and shifted
     off the lower's grid, turned to no axis: every pair of vertices that are far apart in the
     fabric (a fold, not neighbours) ends at least the radius apart, which a pass that missed a
-    neighbouring cell leaves undone, and a vertex that was near no such pair does not move."""
+    neighbouring cell leaves undone, and a vertex that was near no such pair does not move. On a
+    parallel backend (parallel_kernels.self_collide_parallel: every vertex pushed at once, by
+    its averaged share) one pass separates the layers too."""
     from scipy.spatial import cKDTree
     from scipy.spatial.transform import Rotation
 
+    from datagen.sim import solvers
+
+    if parallel:
+        monkeypatch.setattr(solvers, "serial", lambda: False)
     sheet = grid_sheet(40, 0.4, 0.0)
     model = build_cloth_model([(sheet, FABRICS["cotton"])])
     solver = make_solver("xpbd", model, Effects(body_collision=False, friction=False,
@@ -1036,7 +1043,7 @@ def test_self_collision_separates_the_layers_of_a_folded_sheet():
     before = fold_pairs(x)
     assert len(before) > 500
     solver.set_state(x, np.zeros_like(x))
-    for _ in range(4):
+    for _ in range(1 if parallel else 4):
         solver._cloth_collisions(1 / 600, 0.0, 1.0)
     after, _ = solver.get_state()
     assert len(fold_pairs(after)) == 0
@@ -1105,3 +1112,42 @@ def test_the_coloured_limit_after_contact_holds_the_limit_and_keeps_contact(monk
     assert np.abs(solver.get_state()[0] - after).max() < 1e-5
     assert solver.launches["strain_limit"] == 1
     assert not solver.limit_moved.to_numpy().any()  # contact afterwards cleared the flags
+
+
+def test_the_parallel_self_collision_grid_is_the_serial_counting_sort(monkeypatch):
+    """parallel_kernels.self_collide_parallel files the vertices into the hashed grid with
+    atomic counts and cursors, a blocked prefix sum and a sort within each cell: the grid must
+    be the serial counting sort's, each cell listing its vertices in index order (so the pushes
+    do not depend on threads), for 3000 scattered vertices over more cells than one block of
+    the sum holds. Pushes are switched off (radius 0) so that only the grid is compared."""
+    import taichi as ti
+
+    from datagen.sim import parallel_kernels as PK
+    from datagen.sim.backend import init_taichi
+    from datagen.sim.precision import NP_REAL, REAL, VEC3
+
+    init_taichi()
+    rng = np.random.default_rng(3)
+    n, inv_cell = 3000, 40.0
+    mask = (1 << int(np.ceil(np.log2(2 * n)))) - 1
+    assert mask + 1 > 4 * PK.SCAN_BLOCK
+    pts = rng.uniform(-0.3, 0.3, (n, 3)).astype(NP_REAL)
+    pts[:500] = pts[500:1000] + 1e-4  # crowded cells
+    x = ti.ndarray(VEC3, n)
+    x.from_numpy(pts)
+    w = ti.ndarray(REAL, n)
+    w.fill(1.0)
+    owner, items = ti.ndarray(ti.i32, n), ti.ndarray(ti.i32, n)
+    rest, push = ti.ndarray(VEC3, n), ti.ndarray(VEC3, n)
+    counts, starts = ti.ndarray(ti.i32, mask + 1), ti.ndarray(ti.i32, mask + 2)
+    scan = ti.ndarray(ti.i32, (mask + 1) // PK.SCAN_BLOCK + 2)
+    PK.self_collide_parallel(x, w, owner, rest, counts, starts, items, scan, push, inv_cell,
+                             mask, 0.0, 1.0)
+    cells = np.floor(pts.astype(np.float64) * inv_cell).astype(np.int32)
+    with np.errstate(over="ignore"):
+        h = ((cells[:, 0] * np.int32(73856093)) ^ (cells[:, 1] * np.int32(19349663))
+             ^ (cells[:, 2] * np.int32(83492791))) & np.int32(mask)
+    expected_starts = np.concatenate([[0], np.cumsum(np.bincount(h, minlength=mask + 1))])
+    assert np.array_equal(starts.to_numpy(), expected_starts)
+    assert np.array_equal(items.to_numpy(), np.argsort(h, kind="stable"))
+    assert np.array_equal(x.to_numpy(), pts)  # no pushes

@@ -1,5 +1,6 @@
-"""The xpbd solver's strain limit after contact on parallel backends (a GPU, or several CPU
-threads): coloured sweeps instead of one serial task.
+"""Kernels for parallel backends (a GPU, or several CPU threads) where the serial form is one
+task: the xpbd solver's strain limit after contact (coloured sweeps), and self-collision
+(self_collide_parallel, below).
 
 The serial form (kernels.limit_after_contact_active) appends to shared lists, so it runs as one
 task on one thread: on a GPU that is one GPU thread walking every limited spring, in every
@@ -22,7 +23,9 @@ from datagen.sim.kernels import (
     V3,
     collide_one,
     colour_range,
+    hash_cell,
     limit_after_contact_one,
+    vec3,
 )
 from datagen.sim.precision import REAL
 
@@ -90,3 +93,90 @@ def collide_moved(
             if ti.static(use_collision):
                 collide_one(i, x, xp, w, tri, faces, fadj, b0, b1, n0, n1, s0, s1, thickness,
                             friction, recover, release, contact_n, contact_v, h, False)
+
+
+@ti.func
+def self_push(i: ti.i32, x: V3, w: F1, owner: I1, rest: V3, starts: I1, items: I1,
+              inv_cell: REAL, mask: ti.i32, radius: REAL, min_rest: REAL) -> vec3:
+    """Vertex i's share of pushing it and every nearby vertex of its garment apart to `radius`
+    (kernels.self_collide_one, seen from i's side and reading positions as they are), averaged
+    over the pairs it is in."""
+    xi = x[i]
+    oi = owner[i]
+    r2 = radius * radius
+    lo = ti.cast(ti.floor((xi - radius) * inv_cell), ti.i32)
+    total = vec3(0.0)
+    pairs = 0
+    for nb in range(8):
+        c = hash_cell(lo + ti.math.ivec3(nb // 4, (nb // 2) % 2, nb % 2), mask)
+        for q in range(starts[c], starts[c + 1]):
+            j = items[q]
+            if j != i:
+                d = x[j] - xi
+                d2 = d.norm_sqr()
+                if d2 < r2 and d2 > 1e-18 and owner[j] == oi:
+                    wsum = w[i] + w[j]
+                    if wsum > 0.0 and (rest[j] - rest[i]).norm() > min_rest:
+                        dist = ti.sqrt(d2)
+                        total -= w[i] * (radius - dist) / (dist * wsum) * d
+                        pairs += 1
+    if pairs > 1:
+        total /= pairs
+    return total
+
+
+# Cells per block of the hashed grid's prefix sum (self_collide_parallel): each block is summed
+# by one thread, then the blocks' totals by one (a few hundred steps each instead of one thread
+# walking every cell).
+SCAN_BLOCK = 256
+
+
+@ti.func
+def _self_cell(p: vec3, inv_cell: REAL, mask: ti.i32) -> ti.i32:
+    return hash_cell(ti.cast(ti.floor(p * inv_cell), ti.i32), mask)
+
+
+@ti.kernel
+def self_collide_parallel(x: V3, w: F1, owner: I1, rest: V3, counts: I1, starts: I1,
+                          items: I1, scan: I1, push: V3, inv_cell: REAL, mask: ti.i32,
+                          radius: REAL, min_rest: REAL):
+    """kernels.self_collide on a parallel backend. The hashed grid is built in parallel: counts
+    by atomic adds, a blocked prefix sum (`scan`: one entry per SCAN_BLOCK cells, and one), the
+    vertices filed by atomic cursors and each cell's list then sorted by index, so the grid and
+    every sum below are the same on any number of threads. Then each vertex's push (self_push)
+    from the positions as they are, and all pushes at once (Jacobi with averaging: a vertex
+    pressed by a whole layer moves once, not once per neighbour)."""
+    n_cells = mask + 1
+    for c in range(n_cells):
+        counts[c] = 0
+    for i in x:
+        ti.atomic_add(counts[_self_cell(x[i], inv_cell, mask)], 1)
+    for b in range((n_cells + SCAN_BLOCK - 1) // SCAN_BLOCK):
+        total = 0
+        for c in range(b * SCAN_BLOCK, ti.min((b + 1) * SCAN_BLOCK, n_cells)):
+            total += counts[c]
+            starts[c + 1] = total  # within the block, for now
+    for _ in range(1):
+        starts[0] = 0
+        scan[0] = 0
+        for b in range((n_cells + SCAN_BLOCK - 1) // SCAN_BLOCK):
+            scan[b + 1] = scan[b] + starts[ti.min((b + 1) * SCAN_BLOCK, n_cells)]
+    for c in range(n_cells):
+        starts[c + 1] += scan[c // SCAN_BLOCK]
+        counts[c] = 0
+    for i in x:
+        c = _self_cell(x[i], inv_cell, mask)
+        items[starts[c] + ti.atomic_add(counts[c], 1)] = i
+    for c in range(n_cells):  # insertion sort: a cell holds a few vertices
+        for q in range(starts[c] + 1, starts[c + 1]):
+            v = items[q]
+            k = q
+            while k > starts[c] and items[k - 1] > v:
+                items[k] = items[k - 1]
+                k -= 1
+            items[k] = v
+    for i in x:
+        push[i] = self_push(i, x, w, owner, rest, starts, items, inv_cell, mask, radius,
+                            min_rest)
+    for i in x:
+        x[i] += push[i]

@@ -263,6 +263,10 @@ class ClothSolver:
         self.s_items = _nd(ti.i32, np.zeros(self.n if self.use_self else 1, np.int32))
         self.s_owner = _nd(ti.i32, model.garment_of_vertex.astype(np.int32))
         self.s_rest = _nd(VEC3, model.rest_x.astype(NP_REAL))
+        # Parallel backends push all vertices at once (parallel_kernels.self_collide_parallel).
+        parallel = self.use_self and not serial()
+        self.s_push = ti.ndarray(VEC3, self.n if parallel else 1)
+        self.s_scan = ti.ndarray(ti.i32, size // PK.SCAN_BLOCK + 2 if parallel else 1)
 
     def _init_layers(self) -> None:
         """Outer garments collide with the innermost one's surface (layered outfits)."""
@@ -348,6 +352,12 @@ class ClothSolver:
                       2.0 * c.cell, self.contact_n, self.contact_v, h, self.layer_react,
                       self.layer_count, self.effects.friction)
         if self.use_self:
+            if not serial():
+                self._run("self_collision", PK.self_collide_parallel, self.x, self.w,
+                          self.s_owner, self.s_rest, self.s_counts, self.s_starts, self.s_items,
+                          self.s_scan, self.s_push, self.self_inv_cell, self.s_mask,
+                          self.self_radius, self.self_min_rest)
+                return
             self._run("self_collision", K.self_collide, self.x, self.w, self.s_owner,
                       self.s_rest, self.s_counts, self.s_starts, self.s_items,
                       self.self_inv_cell, self.s_mask,
