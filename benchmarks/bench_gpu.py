@@ -143,7 +143,9 @@ def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
     Modes: `cases` (CASES and the t-shirt); `profile`, the first case over PROFILE_FRAMES with
     Taichi's kernel profiler (how much of the wall time the device spends in kernels, and in
     which); `batch`, batched_sheets at each of BATCHES; `serial_limit`, the first case with the
-    strain limit after contact in its serial form (one task) instead of coloured sweeps."""
+    strain limit after contact in its serial form (one task) instead of coloured sweeps;
+    `hard`, HARD_CASES from `scenes`; `self_collision`, the 5k cotton tube with its own effects
+    and without self-collision."""
     os.environ["DATAGEN_TI_ARCH"] = arch
     profile = mode == "profile"
     if profile:
@@ -167,6 +169,19 @@ def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
         cases.append((*TSHIRT, tshirt))
     if mode == "hard":
         out.write_text(json.dumps(_hard_case_rows(scenes), indent=1))
+        return
+    if mode == "self_collision":  # the skirt-like tube with its own effects, and without one
+        rows = []
+        for effects in ("auto", "auto,-self_collision"):
+            scene = build_scene("tube_cylinder", "cotton", "5k", frames=RATE_FRAMES)
+            study_run._WARM.clear()
+            run = run_ours(scene, "xpbd", sub, it, effects=effects)
+            rows.append({"effects": effects, "s_per_sim_s": run.seconds_per_simulated_second,
+                         "strain_p999_max": float(np.max(run.qa["strain_p999"])),
+                         "deep_max": float(np.max(run.qa["deep_share"])),
+                         "finite": bool(np.isfinite(run.positions).all())})
+            print(json.dumps(rows[-1]), flush=True)
+        out.write_text(json.dumps(rows, indent=1))
         return
     if mode == "batch":
         rows = []
@@ -259,6 +274,7 @@ def run_all(out_dir: Path, scenes: Path | None) -> None:
     _both_backends("cases", out_dir, scenes, env)
     if scenes:
         _both_backends("hard", out_dir, scenes, env)
+    _both_backends("self_collision", out_dir, scenes, env)
     _both_backends("batch", out_dir, scenes, env)
     # Alone on the GPU: the serial limit's cost, and the profiled run (the profiler's timing
     # would slow the timed ones).
@@ -382,6 +398,17 @@ def report(out_dir: Path) -> None:
                     f"{r['strain_p999_max']:.3f} | {r['kinetic_per_kg_max']:.2f} | "
                     f"{r['retries']} | {r['wall_s']:.0f} | "
                     f"{'pass' if r['passed'] else 'FAIL: ' + r['detail']} |")
+    own = {a: load(f"self_collision_{a}") for a in ("cuda", "cpu")
+           if (out_dir / f"self_collision_{a}.json").exists()}
+    if own:
+        g, c = ({r["effects"]: r["s_per_sim_s"] for r in own[a]} for a in ("cuda", "cpu"))
+        lines += [
+            "",
+            "Self-collision (the 5k cotton tube with its own effects, a call of its own): GPU "
+            f"{g['auto']:.2f} s/sim-s against {g['auto,-self_collision']:.2f} without it "
+            f"({g['auto'] / g['auto,-self_collision']:.2f}x), CPU {c['auto']:.2f} against "
+            f"{c['auto,-self_collision']:.2f} ({c['auto'] / c['auto,-self_collision']:.2f}x).",
+        ]
     widest = batches["cuda"][-1]
     one_cpu = cpu_batch[1]["s_per_sim_s"]
     lines += [
@@ -396,7 +423,7 @@ def report(out_dir: Path) -> None:
     ]
     (out_dir / "summary.json").write_text(json.dumps(
         {"machine": machine, "cases": summary, "profile": profile, "serial_limit": limit,
-         "batches": batches, "hard_cases": hard}, indent=1))
+         "batches": batches, "hard_cases": hard, "self_collision": own}, indent=1))
     write_section("gpu", "Cloth simulator on a GPU", "\n".join(lines),
                   f"{COMMAND} --run DIR (on the GPU machine), then {COMMAND} --report DIR")
 
