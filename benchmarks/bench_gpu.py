@@ -163,6 +163,12 @@ def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
 
     presets = QUALITY_PRESETS if serial() else PARALLEL_QUALITY_PRESETS
     sub, it = presets["xpbd"]["default"]
+
+    def fresh_run(scene, **kw):
+        # run_ours warms up once per scene name: each run here compiles its own kernels (a
+        # parallel backend's sweeps are compiled per count of colours) before it is timed.
+        study_run._WARM.clear()
+        return run_ours(scene, "xpbd", sub, it, **kw)
     cases = [(name, fabric, res, None) for name, fabric, res in CASES]
     tshirt = scenes / "tshirt.pkl" if scenes else None
     if tshirt and tshirt.exists():
@@ -174,8 +180,7 @@ def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
         rows = []
         for effects in ("auto", "auto,-self_collision"):
             scene = build_scene("tube_cylinder", "cotton", "5k", frames=RATE_FRAMES)
-            study_run._WARM.clear()
-            run = run_ours(scene, "xpbd", sub, it, effects=effects)
+            run = fresh_run(scene, effects=effects)
             rows.append({"effects": effects, "s_per_sim_s": run.seconds_per_simulated_second,
                          "strain_p999_max": float(np.max(run.qa["strain_p999"])),
                          "deep_max": float(np.max(run.qa["deep_share"])),
@@ -187,8 +192,7 @@ def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
         rows = []
         for copies in BATCHES[arch]:
             scene = batched_sheets(copies, BATCH_FRAMES)
-            study_run._WARM.clear()  # each batch compiles before it is timed
-            run = run_ours(scene, "xpbd", sub, it)
+            run = fresh_run(scene)
             rows.append({"copies": copies, "vertices": scene.n_vertices,
                          "s_per_sim_s": run.seconds_per_simulated_second,
                          "finite": bool(np.isfinite(run.positions).all())})
@@ -206,7 +210,7 @@ def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
     if profile:
         name, fabric, res, _ = cases[0]
         scene = build_scene(name, fabric, res, frames=PROFILE_FRAMES)
-        run_ours(scene, "xpbd", sub, it)  # compiles
+        fresh_run(scene)  # compiles
         ti.profiler.clear_kernel_profiler_info()
         run = run_ours(scene, "xpbd", sub, it)
         ti.sync()
@@ -227,11 +231,8 @@ def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
             scene.frames = RATE_FRAMES
         else:
             scene = build_scene(name, fabric, res, frames=RATE_FRAMES)
-        # run_ours warms up once per scene name: each case compiles its own kernels (a
-        # parallel backend's sweeps are compiled per count of colours) before it is timed.
-        study_run._WARM.clear()
         t = time.perf_counter()
-        run = run_ours(scene, "xpbd", sub, it)
+        run = fresh_run(scene)
         key = f"{name}_{fabric}_{res}"
         rows.append({
             "key": key, "name": name, "res": res, "scene": f"{name} {res}".strip(),

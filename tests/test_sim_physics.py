@@ -887,15 +887,17 @@ def test_the_strain_limit_after_contact_leaves_no_vertex_it_pulled_into_the_body
     back at the thickness, outside. Without it, the middle column ended 1 cm deep, and at the
     next substep contact pushed it out: the back and forth ran the fast kick's trousers away
     (docs/simulator.md)."""
-    _limit_a_patch_pulled_into_a_plane(
+    _, x, after, side = _limit_a_patch_pulled_into_a_plane(
         lambda model, effects: make_solver("xpbd", model, effects,
                                            SolverSettings(substeps=20, iterations=4)))
+    assert np.all(after[~side, 2] > 0.004 - 1e-9), after[~side, 2]
+    assert np.allclose(after[side], x[side])  # pinned
 
 
 def _limit_a_patch_pulled_into_a_plane(make):
     """The strain limit after contact on the patch of the test above, with the solver that
-    `make(model, effects)` builds; checks that the middle column ends outside the thickness and
-    the pins stay. Returns the solver."""
+    `make(model, effects)` builds. Returns the solver, the positions before and after, and the
+    pinned side columns."""
     sheet = grid_sheet(2, 0.02, 0.0)
     side = np.abs(sheet.vertices[:, 0]) > 0.005
     sheet.pinned = np.flatnonzero(side)
@@ -912,10 +914,7 @@ def _limit_a_patch_pulled_into_a_plane(make):
     solver.search(collider, 1.0)
     solver.xp.from_numpy(solver.x.to_numpy())  # the substep started here
     solver._limit_after_contact(collider, 0.0, 1.0, 1.0 / 600.0)
-    after = solver.get_state()[0]
-    assert np.all(after[~side, 2] > 0.004 - 1e-9), after[~side, 2]
-    assert np.allclose(after[side], x[side])  # pinned
-    return solver
+    return solver, x, solver.get_state()[0], side
 
 
 def test_the_limit_after_contact_on_moved_vertices_ends_where_full_sweeps_would_stop():
@@ -1071,9 +1070,11 @@ def test_the_coloured_limit_after_contact_holds_the_limit_and_keeps_contact(monk
     from datagen.sim import kernels as K
     from datagen.sim import parallel_kernels as PK
 
-    solver = _limit_a_patch_pulled_into_a_plane(
+    solver, x, after, side = _limit_a_patch_pulled_into_a_plane(
         lambda model, effects: _coloured_solver(monkeypatch, model, effects))
     assert not solver.gauss_seidel and solver.limit_colours.n_colours > 1
+    assert np.all(after[~side, 2] > 0.004 - 1e-9), after[~side, 2]
+    assert np.allclose(after[side], x[side])  # pinned
     assert not solver.limit_moved.to_numpy().any()
 
     sheet = grid_sheet(20, 0.2, 0.0)

@@ -1583,20 +1583,26 @@ def hash_cell(c: ti.math.ivec3, mask: ti.i32) -> ti.i32:
 
 
 @ti.func
+def self_cell(p: vec3, inv_cell: REAL, mask: ti.i32) -> ti.i32:
+    """The hashed self-collision cell holding point p."""
+    return hash_cell(ti.cast(ti.floor(p * inv_cell), ti.i32), mask)
+
+
+@ti.func
 def self_hash_build(x: V3, counts: I1, starts: I1, items: I1, inv_cell: REAL, mask: ti.i32):
     """Counting sort of the cloth vertices into a hashed grid (serial loops: called from serial
     kernels, or as separate tasks by `self_collide`)."""
     for c in range(mask + 1):
         counts[c] = 0
     for i in range(x.shape[0]):
-        c = hash_cell(ti.cast(ti.floor(x[i] * inv_cell), ti.i32), mask)
+        c = self_cell(x[i], inv_cell, mask)
         counts[c] += 1
     starts[0] = 0
     for c in range(mask + 1):
         starts[c + 1] = starts[c] + counts[c]
         counts[c] = 0
     for i in range(x.shape[0]):
-        c = hash_cell(ti.cast(ti.floor(x[i] * inv_cell), ti.i32), mask)
+        c = self_cell(x[i], inv_cell, mask)
         items[starts[c] + counts[c]] = i
         counts[c] += 1
 

@@ -25,6 +25,7 @@ from datagen.sim.kernels import (
     colour_range,
     hash_cell,
     limit_after_contact_one,
+    self_cell,
     vec3,
 )
 from datagen.sim.precision import REAL
@@ -131,11 +132,6 @@ def self_push(i: ti.i32, x: V3, w: F1, owner: I1, rest: V3, starts: I1, items: I
 SCAN_BLOCK = 256
 
 
-@ti.func
-def _self_cell(p: vec3, inv_cell: REAL, mask: ti.i32) -> ti.i32:
-    return hash_cell(ti.cast(ti.floor(p * inv_cell), ti.i32), mask)
-
-
 @ti.kernel
 def self_collide_parallel(x: V3, w: F1, owner: I1, rest: V3, counts: I1, starts: I1,
                           items: I1, scan: I1, push: V3, inv_cell: REAL, mask: ti.i32,
@@ -150,7 +146,7 @@ def self_collide_parallel(x: V3, w: F1, owner: I1, rest: V3, counts: I1, starts:
     for c in range(n_cells):
         counts[c] = 0
     for i in x:
-        ti.atomic_add(counts[_self_cell(x[i], inv_cell, mask)], 1)
+        ti.atomic_add(counts[self_cell(x[i], inv_cell, mask)], 1)
     for b in range((n_cells + SCAN_BLOCK - 1) // SCAN_BLOCK):
         total = 0
         for c in range(b * SCAN_BLOCK, ti.min((b + 1) * SCAN_BLOCK, n_cells)):
@@ -165,7 +161,7 @@ def self_collide_parallel(x: V3, w: F1, owner: I1, rest: V3, counts: I1, starts:
         starts[c + 1] += scan[c // SCAN_BLOCK]
         counts[c] = 0
     for i in x:
-        c = _self_cell(x[i], inv_cell, mask)
+        c = self_cell(x[i], inv_cell, mask)
         items[starts[c] + ti.atomic_add(counts[c], 1)] = i
     for c in range(n_cells):  # insertion sort: a cell holds a few vertices
         for q in range(starts[c] + 1, starts[c + 1]):
