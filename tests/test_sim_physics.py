@@ -762,10 +762,12 @@ def _plate(n: int, size: float) -> tuple[np.ndarray, np.ndarray]:
 
 def test_the_grid_search_finds_the_closest_triangle_within_a_cell():
     """The closest-triangle search measures a triangle only when its box is nearer than the
-    best one so far (kernels.nearest_one): it must still return, for every cloth vertex, a
-    triangle at the exact closest distance when one is within a grid cell, and none when all
-    are farther. A cloud of small triangles, some moving over the frame, searched at its
-    middle; points from on the surface to beyond the cell."""
+    best one so far, and only in the first of its cells that it scans (kernels.nearest_one): it
+    must still return, for every cloth vertex, a triangle at the exact closest distance when
+    one is within a grid cell, and none when all are farther. A cloud of small triangles, some
+    moving over the frame (their swept boxes span several cells), searched at its middle;
+    points from on the surface to beyond the cell. (Measuring a triangle only in its own first
+    cell, ignoring where the scan starts, fails here.)"""
     import taichi as ti
 
     from datagen.sim.precision import NP_REAL, REAL, VEC3
