@@ -219,16 +219,23 @@ def judge(case: Case, record) -> CaseResult:
     res.deep_share_max = float(qa["deep_share"].max()) if "deep_share" in qa else 0.0
     res.kinetic_per_kg_max = float(qa["kinetic_energy"].max()) / mass
     problems = []
+    worst = []  # the frames where a bound broke
     if not finite:
         problems.append("non-finite positions")
     if res.strain_share_max > STRAIN_SHARE_MAX:
         problems.append(f"{100 * res.strain_share_max:.2f} % of edges beyond the strain bound")
+        worst.append(int(np.argmax(qa["over_strain_share"])))
     if res.deep_share_max > DEEP_SHARE_MAX:
         problems.append(f"{100 * res.deep_share_max:.2f} % of vertices deeper than the thickness")
+        worst.append(int(np.argmax(qa["deep_share"])))
     if res.kinetic_per_kg_max > KINETIC_PER_KG_MAX:
         problems.append(f"kinetic energy {res.kinetic_per_kg_max:.1f} J/kg")
     res.passed = not problems
     res.detail = "; ".join(problems) or "finite, strain and penetration within bounds"
+    if problems:
+        from datagen.pipeline.stages import groin_overlap_note
+
+        res.detail += groin_overlap_note(getattr(record, "body", None), worst)
     return res
 
 

@@ -108,6 +108,29 @@ def reject_over_qa_bounds(record: SequenceRecord) -> SequenceRecord:
     if not found:
         return record
     frame = found[0].frame
+    reason = "; ".join(b.reason for b in found) + groin_overlap_note(
+        record.body, [b.frame for b in found])
     return SequenceRecord(
         spec=record.spec, status="rejected", stage="qa",
-        reason="; ".join(b.reason for b in found), frames=(frame, frame), timings=record.timings)
+        reason=reason, frames=(frame, frame), timings=record.timings)
+
+
+def groin_overlap_note(body: BodySequence | None, frames: list[int]) -> str:
+    """Where one of the output `frames` that broke a bound is one in which the body stage
+    found a thigh sunk into the lower torso (linear blend skinning at strong hip flexion, which
+    it does not repair), say so: the cloth there is caught in the body's own overlap (the
+    fast kick in docs/simulator.md). Empty otherwise."""
+    report = getattr(body, "self_collision", None)
+    groin = getattr(report, "groin_overlap_frames", None)
+    if not groin:
+        return ""
+    lead_in = int(body.lead_in_frames)
+    overlapping = {int(f) - lead_in for f in groin}
+    frames = sorted({int(f) for f in frames if int(f) in overlapping})
+    if not frames:
+        return ""
+    where = f"frame {frames[0]}" if len(frames) == 1 else (
+        "frames " + ", ".join(str(f) for f in frames[:-1]) + f" and {frames[-1]}")
+    return (f"; at {where} the body's thigh overlaps its lower torso (up to "
+            f"{100 * report.groin_overlap_max_depth:.1f} cm deep in this sequence: linear blend "
+            f"skinning at strong hip flexion, not repaired)")
