@@ -328,6 +328,37 @@ def test_edges_of_a_grid():
     assert (adj[:, 1] >= 0).sum() == 9 + 12  # interior edges
 
 
+def _spring_energy(model, deformation: np.ndarray) -> float:
+    """Energy of the model's springs with its rest positions mapped by a 3x3 deformation."""
+    x = model.x0 @ deformation.T
+    e = model.springs
+    stretch = np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1) - model.rest_length
+    k = np.where(stretch > 0, model.k_tension, model.k_compression)
+    return float(0.5 * np.sum(k * stretch**2))
+
+
+@pytest.mark.parametrize("h", [0.04, 0.02, 0.01, 0.005])
+def test_stretch_and_shear_energy_are_resolution_independent(h):
+    """A sheet stretched 1 % along its warp, or sheared by 1 %, stores the same energy per area
+    at any edge length. By hand, for the grid's right triangles: an interior warp spring of
+    length h has two triangles of h^2/2 beside it, a third of each its own, so k = Y (h^2/3) /
+    h^2 = Y/3, and a cell's one diagonal (alternating direction) k = Y_s/6 (the model's
+    k = modulus * edge area / length^2). A warp stretch e lengthens the warp springs by e h and
+    each diagonal by e h / sqrt(2): (Y/6 + Y_s/24) e^2 per square metre. A shear g lengthens or
+    shortens each diagonal by g h / sqrt(2) and leaves the others to second order: Y_s g^2 / 24.
+    Exact lengths differ from these first-order ones by 0.1 % of the energy (the diagonals),
+    at every edge length alike."""
+    n = int(round(0.4 / h))
+    for name in ("cotton", "denim"):
+        fabric = FABRICS[name]
+        model = build_cloth_model([(grid_sheet(n, 0.4, 0.0, fabric=name), fabric)])
+        warp = _spring_energy(model, np.diag([1.01, 1.0, 1.0])) / 0.4**2
+        shear = _spring_energy(model, np.array([[1.0, 0.01, 0.0], [0.0, 1.0, 0.0],
+                                                [0.0, 0.0, 1.0]])) / 0.4**2
+        assert warp == pytest.approx((fabric.stretch / 6 + fabric.shear / 24) * 1e-4, rel=2e-3)
+        assert shear == pytest.approx(fabric.shear / 24 * 1e-4, rel=2e-3)
+
+
 @pytest.mark.parametrize("h", [0.02, 0.01, 0.005])
 def test_bending_energy_is_resolution_independent(h):
     """A sheet rolled into a cylinder of radius R stores B * area / (2 R^2) at any mesh size."""
