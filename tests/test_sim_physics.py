@@ -402,6 +402,56 @@ def test_user_fabrics_from_yaml(tmp_path):
         load_fabrics(neg)
 
 
+def _explicit_hanging_sheet(substeps: int):
+    """A 0.3 m cotton sheet hanging from two corners of an edge, released flat, run by the
+    explicit solver for 20 frames (it is stable from about 30 substeps a frame)."""
+    sheet = grid_sheet(8, 0.3, 1.0)
+    sheet.pinned = np.array([0, 8])
+    return sheet, simulate([sheet], None, SimOptions(solver="explicit", substeps=substeps,
+                                                     frames=20, settle_seconds=0.0,
+                                                     strain_refinements=0))
+
+
+def test_an_unstable_frame_is_redone_with_more_substeps_until_it_is_stable():
+    """At 20 substeps the explicit step is unstable for this sheet: a frame that starts at
+    rest ends with 0.37 J, every vertex at 5-10 m/s, under the speed limit (15 m/s) and the
+    absolute energy guard. The energy-gain guard bounds what gravity (the only thing moving
+    it) can give in a frame and catches it: every frame is redone at 40 substeps, so the run
+    is the 40-substep one. (Before the guard, 11 frames tripped the speed limit, the others
+    were kept, and the swing ended with 24x its kinetic energy.)"""
+    sheet, coarse = _explicit_hanging_sheet(20)
+    _, fine = _explicit_hanging_sheet(40)
+    assert coarse.report["retries"] == 20
+    assert coarse.report["frame_substeps_max"] == 40
+    np.testing.assert_allclose(coarse.vertices[sheet.name], fine.vertices[sheet.name],
+                               atol=1e-6)
+    # The swing's kinetic energy never exceeds the potential energy it gave up (0.3 m at most).
+    assert coarse.qa["kinetic_energy"].max() < G * 0.3 * 0.15 * 0.3**2
+
+
+def test_a_frame_unstable_after_the_last_retry_rejects_the_sequence_with_its_reason():
+    from datagen.errors import RejectedSequence
+
+    with pytest.raises(RejectedSequence) as info:
+        _explicit_hanging_sheet(4)
+    assert info.value.stage == "simulate"
+    message = str(info.value)
+    assert "unstable at frame 1: runaway velocity" in message
+    assert "still after 2 retries with up to 16 substeps" in message
+
+
+def test_the_energy_bound_is_exact_for_free_fall():
+    """kinetic_energy_bound is tight for a cloth falling straight down (every vertex gains
+    exactly g dt) and holds for any drive as fast as the bound's."""
+    from datagen.sim.simulate import kinetic_energy_bound
+
+    mass, v0, dt = 0.2, 1.5, 1 / 30
+    exact = 0.5 * mass * (v0 + G * dt) ** 2
+    assert kinetic_energy_bound(0.5 * mass * v0**2, mass, dt, G, 0.0) == pytest.approx(exact)
+    pushed = 0.5 * mass * (v0 + G * dt + 3.0) ** 2  # and a body at 3 m/s pushing it along
+    assert kinetic_energy_bound(0.5 * mass * v0**2, mass, dt, G, 3.0) == pytest.approx(pushed)
+
+
 def test_frames_over_the_strain_bound_are_redone_with_more_substeps(monkeypatch):
     """A sheet falling on a sphere at the draft preset. With a strain bound that more substeps
     help to meet (1.2 %), frames that end over it are redone with more substeps and the refined

@@ -50,6 +50,14 @@ REFINE_REST = 10  # frames without strain refinement after one that did not help
 # event (a kick), not the persistent, slowly changing strain of a garment smaller than its body.
 REST_BREAK = 1.5
 SPEED_LIMIT = 15.0  # m/s: a cloth vertex faster than this and 3x the body's fastest is runaway
+# A frame may give the cloth no more kinetic energy than gravity, what drives it (the body, wind,
+# the recovery from penetration) and the elastic energy it releases can: ENERGY_SLACK times that
+# bound (kinetic_energy_bound), plus the energy of every vertex at ENERGY_FLOOR_SPEED. More is
+# the step adding energy of its own, an instability growing below the speed limit: an explicit
+# run of a hanging sheet at too few substeps went from 0.0007 to 0.37 J in one frame, all of its
+# vertices at 5-10 m/s, which the absolute guards let through.
+ENERGY_SLACK = 2.0
+ENERGY_FLOOR_SPEED = 0.1  # m/s
 
 
 @dataclass
@@ -163,6 +171,30 @@ def _fabric_strain(model: ClothModel, x: np.ndarray) -> tuple[np.ndarray, np.nda
     return strain, strain > model.max_strain[fabric_springs]
 
 
+def kinetic_energy(model: ClothModel, v: np.ndarray) -> float:
+    return float(0.5 * np.sum(model.mass * np.sum(v * v, axis=1)))
+
+
+def elastic_energy(model: ClothModel, x: np.ndarray) -> float:
+    """Energy stored in the springs and bending stencils at positions x (J)."""
+    e = model.springs
+    stretch = np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1) - model.rest_length
+    k = np.where(stretch > 0, model.k_tension, model.k_compression)
+    curvature = np.einsum("bk,bkd->bd", model.bend_weights, x[model.bends])
+    return float(0.5 * np.sum(k * stretch**2)
+                 + 0.5 * np.sum(model.bend_stiffness * np.sum(curvature * curvature, axis=1)))
+
+
+def kinetic_energy_bound(ke0: float, mass: float, dt: float, gravity: float,
+                         drive_speed: float) -> float:
+    """The most kinetic energy a cloth of total `mass` with kinetic energy `ke0` can have `dt`
+    later when no vertex gains more speed than gravity gives it plus `drive_speed` (the fastest
+    thing pushing or pulling it). Gravity alone: dKE/dt = g sum(m_i v_iz) <= g sqrt(2 M KE), so
+    sqrt(KE) grows by at most g dt sqrt(M / 2); a driver adds its speed the same way. Internal
+    forces only exchange kinetic and elastic energy (the caller adds what was released)."""
+    return (np.sqrt(ke0) + np.sqrt(0.5 * mass) * (gravity * dt + drive_speed)) ** 2
+
+
 def over_strain_share(model: ClothModel, x: np.ndarray) -> float:
     return float(_fabric_strain(model, x)[1].mean())
 
@@ -174,7 +206,7 @@ def _qa(model: ClothModel, x: np.ndarray, v: np.ndarray, sd: np.ndarray | None) 
         "strain_max": float(strain.max()),
         "strain_p999": float(np.percentile(strain, 99.9)),
         "over_strain_share": float(over.mean()),
-        "kinetic_energy": float(0.5 * np.sum(model.mass * np.sum(v * v, axis=1))),
+        "kinetic_energy": kinetic_energy(model, v),
     }
     if sd is not None:
         thick = model.thickness
@@ -270,6 +302,7 @@ class _Simulation:
         self.refine_rest = 0  # frames left before strain refinement is tried again
         self.last_share = 0.0  # the previous frame's over-strained share (while resting)
         self.frame_substeps: list[int] = []
+        self._frame_start: tuple[np.ndarray, np.ndarray] | None = None  # (x, v) of _advance
         # The state last read from a solver, until that solver's state changes: a frame reads
         # it once (its guards) instead of again for the strain check, the output and the
         # next frame's start (each read is a device copy and a float64 conversion).
@@ -322,12 +355,17 @@ class _Simulation:
             t1 = self.pins.targets(b[f1].astype(np.float64), self.faces)
             solver.set_pin_targets(t0, t1)
 
-    def _speed_limit(self, f0: int, f1: int) -> float:
+    def _body_speed(self, f0: int, f1: int) -> float:
+        """The body's fastest vertex between two frames (m/s; 0 without a body)."""
+        if self.body is None:
+            return 0.0
+        return float(np.linalg.norm(self.body.vertices[f1] - self.body.vertices[f0],
+                                    axis=1).max()) * self.fps
+
+    def _speed_limit(self, body_speed: float) -> float:
         if self.body is None:
             return self.options.speed_limit
-        body_speed = np.linalg.norm(
-            self.body.vertices[f1] - self.body.vertices[f0], axis=1).max() * self.fps
-        return max(self.options.speed_limit, 3.0 * float(body_speed))
+        return max(self.options.speed_limit, 3.0 * body_speed)
 
     def _frame(self, solver, f0: int, f1: int, profile: bool, search: bool = True) -> str | None:
         """Advance one frame; returns a failure reason or None."""
@@ -344,13 +382,41 @@ class _Simulation:
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
             return "non-finite positions"
         speed = float(np.linalg.norm(v, axis=1).max())
-        limit = self._speed_limit(f0, f1)
+        body_speed = self._body_speed(f0, f1)
+        limit = self._speed_limit(body_speed)
         if speed > limit:
             return f"runaway velocity {speed:.1f} m/s (limit {limit:.1f})"
-        ke = 0.5 * np.sum(self.model.mass * np.sum(v * v, axis=1))
+        ke = kinetic_energy(self.model, v)
         if ke > 0.5 * self.model.mass.sum() * limit**2 * 0.25:
             return f"kinetic energy blow-up ({ke:.3g} J)"
-        return None
+        return self._energy_gain(solver.settings, ke, x, body_speed)
+
+    def _energy_gain(self, settings: SolverSettings, ke: float, x: np.ndarray,
+                     body_speed: float) -> str | None:
+        """Why the frame just run gave the cloth more kinetic energy than anything in the
+        scene can (ENERGY_SLACK), or None."""
+        if self._frame_start is None:
+            return None
+        x0, v0 = self._frame_start
+        ke0 = kinetic_energy(self.model, v0)
+        mass = float(self.model.mass.sum())
+        gravity = float(np.linalg.norm(settings.gravity)) if self.effects.gravity else 0.0
+        drive = settings.recover_speed + body_speed
+        if self.effects.wind and self.options.wind:
+            drive += float(np.linalg.norm(self.options.wind))
+        floor = 0.5 * mass * ENERGY_FLOOR_SPEED**2
+        bound = ENERGY_SLACK * kinetic_energy_bound(ke0, mass, 1.0 / self.fps, gravity, drive)
+        if ke <= bound + floor:
+            return None
+        # Only now the stored energy: a stretched garment snapping back may take its speed
+        # from it (two passes over the springs and stencils, rarely needed).
+        released = max(elastic_energy(self.model, x0) - elastic_energy(self.model, x), 0.0)
+        bound += ENERGY_SLACK * released
+        if ke <= bound + floor:
+            return None
+        return (f"energy gain: kinetic energy {ke0:.3g} -> {ke:.3g} J in one frame, over the "
+                f"{bound + floor:.3g} J that gravity, the collider, wind and {released:.3g} J "
+                f"of released elastic energy can give")
 
     def run(self) -> SimResult:
         t_start = time.perf_counter()
@@ -396,6 +462,7 @@ class _Simulation:
         went from 2.5 % of its edges over the bound to 0.06 % at 4x.)"""
         solver = self.solver
         x0, v0 = self._state(solver)
+        self._frame_start = (x0, v0)
         tracking0 = solver.get_tracking()
         every = self.options.profile_every
         search = step % self.options.search_every == 0
