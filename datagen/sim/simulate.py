@@ -299,7 +299,10 @@ class _Simulation:
         self.refine_rest = 0  # frames left before strain refinement is tried again
         self.last_share = 0.0  # the previous frame's over-strained share (while resting)
         self.frame_substeps: list[int] = []
-        self._frame_start: tuple[np.ndarray, np.ndarray] | None = None  # (x, v) of _advance
+        # Positions and kinetic energy where the frame being run starts (_advance): the energy
+        # guard's reference for the frame and its retries.
+        self._frame_start: tuple[np.ndarray, float] | None = None
+        self.cloth_mass = float(self.model.mass.sum())
         # The state last read from a solver, until that solver's state changes: a frame reads
         # it once (its guards) instead of again for the strain check, the output and the
         # next frame's start (each read is a device copy and a float64 conversion).
@@ -387,7 +390,7 @@ class _Simulation:
         if speed > limit:
             return f"runaway velocity {speed:.1f} m/s (limit {limit:.1f})"
         ke = kinetic_energy(self.model, v)
-        if ke > 0.5 * self.model.mass.sum() * limit**2 * 0.25:
+        if ke > 0.5 * self.cloth_mass * limit**2 * 0.25:
             return f"kinetic energy blow-up ({ke:.3g} J)"
         return self._energy_gain(solver.settings, ke, x, body_speed)
 
@@ -397,9 +400,8 @@ class _Simulation:
         scene can (ENERGY_SLACK), or None."""
         if self._frame_start is None:
             return None
-        x0, v0 = self._frame_start
-        ke0 = kinetic_energy(self.model, v0)
-        mass = float(self.model.mass.sum())
+        x0, ke0 = self._frame_start
+        mass = self.cloth_mass
         gravity = float(np.linalg.norm(settings.gravity)) if self.effects.gravity else 0.0
         drive = settings.recover_speed + body_speed
         if self.effects.wind and self.options.wind:
@@ -462,7 +464,7 @@ class _Simulation:
         went from 2.5 % of its edges over the bound to 0.06 % at 4x.)"""
         solver = self.solver
         x0, v0 = self._state(solver)
-        self._frame_start = (x0, v0)
+        self._frame_start = (x0, kinetic_energy(self.model, v0))
         tracking0 = solver.get_tracking()
         every = self.options.profile_every
         search = step % self.options.search_every == 0
@@ -521,16 +523,16 @@ class _Simulation:
             solver.set_tracking(current.get_tracking())
         self.frame_substeps.append(self.substeps * 2**level)
 
-    def _fabric_strain(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """_fabric_strain of positions read by _state (read-only: the same object is the same
-        positions)."""
+    def _strain(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """_fabric_strain of positions read by _state, computed once for them (they are
+        read-only: the same object is the same positions)."""
         if self._strain_of is None or self._strain_of[0] is not x:
             self._strain_of = (x, _fabric_strain(self.model, x))
         return self._strain_of[1]
 
     def _over_strain(self, solver) -> float:
         x, _ = self._state(solver)
-        return float(self._fabric_strain(x)[1].mean())
+        return float(self._strain(x)[1].mean())
 
     def _record(self, body_frame: int, outputs, qa_rows) -> None:
         x, v = self._state(self.solver)
@@ -541,7 +543,7 @@ class _Simulation:
             # The collider holds this frame's body as its end position; the solver's vertices
             # track their closest triangles, so no new search is needed.
             sd = self.collider.signed_distance_tracked(self.solver.x, self.solver.tri)
-        qa_rows.append(_qa(self.model, x, v, sd, self._fabric_strain(x)))
+        qa_rows.append(_qa(self.model, x, v, sd, self._strain(x)))
 
     def _result(self, outputs, qa_rows, wall, settle) -> SimResult:
         costs: dict[str, float] = {}
