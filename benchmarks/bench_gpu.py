@@ -110,7 +110,7 @@ def _hard_case_rows(scenes: Path) -> list[dict]:
 
     from datagen.errors import RejectedSequence
     from datagen.pipeline.hard_cases import judge, load_hard_cases
-    from datagen.sim.simulate import simulate
+    from datagen.pipeline.stages import simulate_within_bounds
 
     cases = {c.name: c for c in load_hard_cases(REPO / "pipelines" / "hard_cases.yaml").cases}
     rows = []
@@ -122,7 +122,7 @@ def _hard_case_rows(scenes: Path) -> list[dict]:
             saved = pickle.load(f)
         t = time.perf_counter()
         try:
-            sim = simulate(saved["garments"], saved["body"], saved["options"])
+            sim = simulate_within_bounds(saved["garments"], saved["body"], saved["options"])
             record = SimpleNamespace(status="ok", sim=sim, garments=saved["garments"])
         except RejectedSequence as exc:
             record = SimpleNamespace(status="rejected", stage=exc.stage, reason=exc.reason)
@@ -133,6 +133,8 @@ def _hard_case_rows(scenes: Path) -> list[dict]:
                      "strain_share_max": result.strain_share_max,
                      "deep_share_max": result.deep_share_max,
                      "kinetic_per_kg_max": result.kinetic_per_kg_max,
+                     "escalated_from": sim.report.get("escalated_from")
+                     if record.status == "ok" else None,
                      "wall_s": time.perf_counter() - t})
         print(json.dumps(rows[-1]), flush=True)
     return rows

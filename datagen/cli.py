@@ -341,6 +341,10 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, so
         f"{float(sim.qa['strain_p999'].max()):.3f} (99.9th pct), deepest penetration share "
         f"{float(sim.qa['deep_share'].max()):.4f}"
     )
+    if rep.get("escalated_from"):
+        first = rep["escalated_from"]
+        click.echo(f"  simulated again at {rep['quality']}: the run at {first['settings']} broke "
+                   f"a bound ({first['reason']})")
     start = record.body.lead_in_frames
     if export_obj:
         from datagen.io.export import write_obj_sequence

@@ -10,8 +10,12 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from datagen.sim.fabrics import Fabric
 
 DEEP_SHARE_MAX = 0.01  # share of garment vertices deeper in the body than the fabric thickness
 QA_POLICIES = ("reject", "keep")  # what a dataset run does with a sequence over a bound
@@ -37,13 +41,14 @@ class Breach:
                 f"bound {self.limit:g})")
 
 
-def strain_limit(fabric_names: Iterable[str]) -> float | None:
-    """The largest max_strain of a sequence's (built-in) fabrics: the QA series cover all
-    garments together, so a stiffer garment's bound would flag its softer neighbour's strain.
-    None when there are no garments."""
+def strain_limit(fabric_names: Iterable[str],
+                 user_fabrics: Mapping[str, Fabric] | None = None) -> float | None:
+    """The largest max_strain of a sequence's fabrics (built-in, or the user's by name): the
+    QA series cover all garments together, so a stiffer garment's bound would flag its softer
+    neighbour's strain. None when there are no garments."""
     from datagen.sim.fabrics import get_fabric
 
-    limits = [get_fabric(name).max_strain for name in fabric_names]
+    limits = [get_fabric(name, dict(user_fabrics or {})).max_strain for name in fabric_names]
     return max(limits) if limits else None
 
 

@@ -10,11 +10,15 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from datagen.errors import RejectedSequence
 from datagen.recipe import BodyConfig
 from datagen.spec import SceneSpec
 from datagen.types import BodySequence, Garment, Motion, SimResult
+
+if TYPE_CHECKING:
+    from datagen.sim.simulate import ColliderTrack, SimOptions
 
 
 @dataclass
@@ -63,7 +67,6 @@ def run_sequence(
     from datagen.body.sequence import build_body_sequence
     from datagen.garment.outfit import dropped_parts_for, make_outfit
     from datagen.motion.load import motion_from_spec
-    from datagen.sim.simulate import simulate
 
     record = SequenceRecord(spec=spec, status="ok")
     config = body_config or BodyConfig()
@@ -85,14 +88,64 @@ def run_sequence(
             record.timings["outfit"] = time.perf_counter() - t
             if simulate_cloth:
                 t = time.perf_counter()
-                record.sim = simulate(record.garments, record.body,
-                                      sim_options_from_spec(spec, fabrics))
+                record.sim = simulate_within_bounds(record.garments, record.body,
+                                                    sim_options_from_spec(spec, fabrics))
                 record.timings["simulate"] = time.perf_counter() - t
     except RejectedSequence as exc:
         record.status = "rejected"
         record.stage, record.reason, record.frames = exc.stage, exc.reason, exc.frames
         record.body = record.garments = record.sim = None
     return record
+
+
+def simulate_within_bounds(garments: list[Garment], body: BodySequence | ColliderTrack | None,
+                           options: SimOptions) -> SimResult:
+    """Simulate the garments; a run that breaks a physical-validity bound (datagen.qa) or is
+    rejected as unstable is simulated once more at SimOptions.escalated() (the next quality
+    preset up, plain sweeps), and that run is the result. Only the sequences that need it pay
+    for the finer steps: the fast kick's trousers break the strain bound at `default` 20x4
+    in one frame of the kick (a chaotic frame: more substeps for that frame alone do not help),
+    and pass at 40x8 (docs/simulator.md, "Escalation"). The result's report names the first
+    run's settings and why it was not kept (`escalated_from`); a second rejection says both."""
+    from datagen import qa
+    from datagen.sim.simulate import simulate
+
+    limit = qa.strain_limit([g.fabric for g in garments], options.fabrics)
+    up = options.escalated()
+    first_wall = None
+    try:
+        sim = simulate(garments, body, options)
+    except RejectedSequence as exc:
+        if up is None or exc.stage != "simulate":
+            raise
+        why = exc.reason
+    else:
+        found = qa.breaches(sim.qa, limit)
+        if not found or up is None:
+            return sim
+        why = "; ".join(b.reason for b in found)
+        first_wall = float(sim.report["wall_time_s"])
+    first = f"{options.solver} {options.steps_label()}"
+    try:
+        second = simulate(garments, body, up)
+    except RejectedSequence as exc:
+        raise RejectedSequence(
+            exc.stage, f"{exc.reason}; simulated again at {up.steps_label()}, after the run "
+            f"at {first}: {why}", exc.frames) from None
+    second.report["escalated_from"] = {"settings": first, "reason": why,
+                                       "wall_time_s": first_wall}
+    return second
+
+
+def escalation_note(sim: SimResult | None) -> str:
+    """'; simulated again at ..., after the run at ...: why' where a sequence was simulated again
+    (simulate_within_bounds), empty otherwise: a QA rejection's reason says both runs."""
+    first = sim.report.get("escalated_from") if sim is not None else None
+    if first is None:
+        return ""
+    return (f"; simulated again at {sim.report['quality']} {sim.report['substeps']}x"
+            f"{sim.report['iterations']}, sor {sim.report['sor']:g}, after the run at "
+            f"{first['settings']}: {first['reason']}")
 
 
 def reject_over_qa_bounds(record: SequenceRecord) -> SequenceRecord:
@@ -109,7 +162,7 @@ def reject_over_qa_bounds(record: SequenceRecord) -> SequenceRecord:
         return record
     frame = found[0].frame
     reason = "; ".join(b.reason for b in found) + groin_overlap_note(
-        record.body, [b.frame for b in found])
+        record.body, [b.frame for b in found]) + escalation_note(record.sim)
     return SequenceRecord(
         spec=record.spec, status="rejected", stage="qa",
         reason=reason, frames=(frame, frame), timings=record.timings)

@@ -10,7 +10,7 @@ a frame that still fails rejects the sequence with the reason instead of writing
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -44,6 +44,10 @@ PARALLEL_QUALITY_PRESETS: dict[str, dict[str, tuple[int, int]]] = {
 # more sweeps of the limit after contact, passes 15 of the 16 full hard cases instead of 12;
 # 1.8 gains little more at 20x4, loses at 40x4 and raises the skirt's strain (docs/simulator.md).
 OVER_RELAXATION: dict[str, float] = {"xpbd": 1.6}
+# A sequence simulated again one preset up (SimOptions.escalated) sweeps without
+# over-relaxation: the 1.6 that pays at 20x4 runs the fast kick's trousers away at 40x8 (88 m/s
+# at frame 26), where plain sweeps pass it (docs/simulator.md, "Escalation").
+ESCALATED_SOR = 1.0
 MAX_RETRIES = 2
 REFINE_REST = 10  # frames without strain refinement after one that did not help
 # ...unless a frame ends with this multiple of the previous frame's over-strained share: a new
@@ -97,6 +101,25 @@ class SimOptions:
             presets = PARALLEL_QUALITY_PRESETS[self.solver]
         sub, it = presets[self.quality]
         return self.substeps or sub, self.iterations or it
+
+    def escalated(self) -> SimOptions | None:
+        """The options a sequence is simulated again with when its run breaks a
+        physical-validity bound or is rejected as unstable (datagen.pipeline.stages): the next
+        quality preset up, with plain Gauss-Seidel sweeps (ESCALATED_SOR) unless the caller
+        chose an over-relaxation. None at the top preset, or when the caller gave the steps."""
+        if self.substeps is not None or self.iterations is not None:
+            return None
+        names = list(QUALITY_PRESETS.get(self.solver, {}))
+        if self.quality not in names or names.index(self.quality) + 1 >= len(names):
+            return None
+        sor = self.sor if self.sor is not None or self.solver not in OVER_RELAXATION \
+            else ESCALATED_SOR
+        return replace(self, quality=names[names.index(self.quality) + 1], sor=sor)
+
+    def steps_label(self) -> str:
+        """'default 20x4, sor 1.6': the settings a run of these options used, in words."""
+        sub, it = self.resolve_steps()
+        return f"{self.quality} {sub}x{it}, sor {self.resolve_sor():g}"
 
     def resolve_sor(self) -> float:
         sor = OVER_RELAXATION.get(self.solver, 1.0) if self.sor is None else self.sor

@@ -1,0 +1,143 @@
+"""A sequence whose run breaks a physical-validity bound, or is rejected as unstable, is
+simulated once more one quality preset up (datagen.pipeline.stages.simulate_within_bounds)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from datagen import qa
+from datagen.errors import RejectedSequence
+from datagen.pipeline.stages import (
+    SequenceRecord,
+    reject_over_qa_bounds,
+    simulate_within_bounds,
+)
+from datagen.sim import simulate as sim_module
+from datagen.sim.fabrics import FABRICS
+from datagen.sim.scenes import grid_sheet, icosphere
+from datagen.sim.simulate import ESCALATED_SOR, ColliderTrack, SimOptions, simulate
+from datagen.spec import SceneSpec
+
+
+def test_escalation_goes_one_preset_up_with_plain_sweeps():
+    up = SimOptions().escalated()
+    assert (up.quality, up.sor) == ("reference", ESCALATED_SOR)
+    assert up.resolve_steps() == (40, 8)  # the serial presets (one thread here)
+    assert SimOptions(quality="draft").escalated().quality == "default"
+    assert SimOptions(quality="draft", sor=1.3).escalated().sor == 1.3  # the caller's choice
+    assert SimOptions(solver="implicit").escalated().quality == "reference"
+    # Nothing above the top preset, and steps the caller gave are the caller's.
+    assert SimOptions(quality="reference").escalated() is None
+    assert SimOptions(substeps=30).escalated() is None
+    assert SimOptions(iterations=6).escalated() is None
+    assert SimOptions().steps_label() == "default 20x4, sor 1.6"
+
+
+def _sheet_on_sphere(monkeypatch, bound: float):
+    """A cotton sheet falling on a sphere, with cotton's strain bound set to `bound`. Strain
+    refinement is off, so a frame over the bound stays over it."""
+    monkeypatch.setitem(FABRICS, "cotton", replace(FABRICS["cotton"], max_strain=bound))
+    sv, sf = icosphere(0.25, 4)
+    track = ColliderTrack(np.repeat(sv[None], 31, axis=0), sf, np.ones(len(sf), dtype=bool))
+    return [grid_sheet(16, 0.8, 0.3)], track
+
+
+def _counting_simulate(monkeypatch) -> list[SimOptions]:
+    """The options of every simulate() call made through the stages (a spy on the real one)."""
+    calls: list[SimOptions] = []
+
+    def spy(garments, body, options):
+        calls.append(options)
+        return simulate(garments, body, options)
+
+    monkeypatch.setattr(sim_module, "simulate", spy)
+    return calls
+
+
+def test_a_run_over_a_bound_is_simulated_again_one_preset_up(monkeypatch):
+    """At a 2 % bound the default preset ends over it (measured: 0.0210 at frame 8 with plain
+    sweeps), the reference steps within it (0.0187): the result is the second run, it says
+    why, and it is the run that simulating at those options gives."""
+    garments, track = _sheet_on_sphere(monkeypatch, 0.02)
+    calls = _counting_simulate(monkeypatch)
+    options = SimOptions(settle_seconds=0.0, strain_refinements=0)
+    result = simulate_within_bounds(garments, track, options)
+    assert [c.quality for c in calls] == ["default", "reference"]
+    assert (result.report["quality"], result.report["substeps"], result.report["iterations"],
+            result.report["sor"]) == ("reference", 40, 8, 1.0)
+    first = result.report["escalated_from"]
+    assert first["settings"] == "xpbd default 20x4, sor 1.6"
+    assert "qa/strain_p999" in first["reason"] and "bound 0.02" in first["reason"]
+    assert first["wall_time_s"] > 0
+    assert not qa.breaches(result.qa, 0.02)
+    direct = simulate(garments, track, options.escalated())
+    np.testing.assert_array_equal(result.vertices[garments[0].name],
+                                  direct.vertices[garments[0].name])
+
+
+def test_a_run_within_its_bounds_is_not_simulated_again(monkeypatch):
+    garments, track = _sheet_on_sphere(monkeypatch, 0.25)
+    calls = _counting_simulate(monkeypatch)
+    result = simulate_within_bounds(garments, track, SimOptions(settle_seconds=0.0))
+    assert len(calls) == 1 and "escalated_from" not in result.report
+
+
+def test_a_sequence_still_over_after_escalation_is_rejected_naming_both_runs(monkeypatch):
+    """At a 1.2 % bound the draft preset (0.0204) and the default steps with plain sweeps
+    (0.0137) both end over it: the gate rejects the second run and says both."""
+    garments, track = _sheet_on_sphere(monkeypatch, 0.012)
+    options = SimOptions(quality="draft", settle_seconds=0.0, strain_refinements=0)
+    result = simulate_within_bounds(garments, track, options)
+    assert result.report["quality"] == "default" and qa.breaches(result.qa, 0.012)
+    record = SequenceRecord(spec=SceneSpec(0, 0, "seq"), status="ok", garments=garments,
+                            sim=result)
+    rejected = reject_over_qa_bounds(record)
+    assert rejected.status == "rejected" and rejected.stage == "qa"
+    assert rejected.reason.startswith("strain over the fabrics' max_strain (qa/strain_p999 ")
+    assert ("; simulated again at default 20x4, sor 1, after the run at xpbd draft 10x2, "
+            "sor 1.6: strain over") in rejected.reason
+    # From the top preset there is nothing to escalate to: one run, its breach as it is.
+    calls = _counting_simulate(monkeypatch)
+    top = simulate_within_bounds(garments, track, replace(options, quality="reference",
+                                                           sor=None))
+    assert len(calls) == 1 and "escalated_from" not in top.report
+
+
+def _stiff_hanging_sheet(monkeypatch, stiffer: float):
+    """A sheet `stiffer` times stiffer than cotton hanging from two corners, for the explicit
+    solver, with retries off so that instability rejects. Measured: 100 times is unstable at
+    the draft preset's 200 substeps (533 m/s in the first frame) and stable at the default's
+    400; 200 times is unstable at both (620 and 899 m/s)."""
+    cotton = FABRICS["cotton"]
+    monkeypatch.setitem(FABRICS, "cotton", replace(cotton, stretch=stiffer * cotton.stretch,
+                                                   shear=stiffer * cotton.shear))
+    monkeypatch.setattr(sim_module, "MAX_RETRIES", 0)
+    sheet = grid_sheet(8, 0.3, 1.0)
+    sheet.pinned = np.array([0, 8])
+    return [sheet], SimOptions(solver="explicit", quality="draft", frames=20,
+                               settle_seconds=0.0, strain_refinements=0)
+
+
+def test_a_run_rejected_as_unstable_is_simulated_again_one_preset_up(monkeypatch):
+    garments, options = _stiff_hanging_sheet(monkeypatch, 100.0)
+    result = simulate_within_bounds(garments, None, options)
+    assert (result.report["quality"], result.report["substeps"]) == ("default", 400)
+    first = result.report["escalated_from"]
+    assert first["settings"] == "explicit draft 200x1, sor 1"
+    assert first["reason"].startswith("unstable at frame 1: runaway velocity")
+    assert first["wall_time_s"] is None  # a rejected run has no result to time
+    assert np.isfinite(result.vertices[garments[0].name]).all()
+
+
+def test_a_run_unstable_after_escalation_is_rejected_naming_both_runs(monkeypatch):
+    garments, options = _stiff_hanging_sheet(monkeypatch, 200.0)
+    with pytest.raises(RejectedSequence) as info:
+        simulate_within_bounds(garments, None, options)
+    assert info.value.stage == "simulate"
+    message = info.value.reason
+    assert message.startswith("unstable at frame 1: runaway velocity")
+    assert "; simulated again at default 400x1, sor 1, after the run at explicit draft " \
+           "200x1, sor 1: unstable at frame 1: runaway velocity" in message
