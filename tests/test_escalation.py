@@ -3,7 +3,9 @@ simulated once more one quality preset up (datagen.pipeline.stages.simulate_with
 
 from __future__ import annotations
 
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,6 +22,9 @@ from datagen.sim.fabrics import FABRICS
 from datagen.sim.scenes import grid_sheet, icosphere
 from datagen.sim.simulate import ESCALATED_SOR, ColliderTrack, SimOptions, simulate
 from datagen.spec import SceneSpec
+
+sys.path.insert(0, str(Path(__file__).parent))
+import shard_factory as sf  # noqa: E402
 
 
 def test_escalation_goes_one_preset_up_with_plain_sweeps():
@@ -141,3 +146,16 @@ def test_a_run_unstable_after_escalation_is_rejected_naming_both_runs(monkeypatc
     assert message.startswith("unstable at frame 1: runaway velocity")
     assert "; simulated again at default 400x1, sor 1, after the run at explicit draft " \
            "200x1, sor 1: unstable at frame 1: runaway velocity" in message
+
+
+def test_the_manifest_says_which_sequences_were_simulated_again(tmp_path):
+    from datagen.pipeline.dataset import manifest_rows
+
+    plain, again = sf.make_record(0).record, sf.make_record(1).record
+    why = "strain over the fabrics' max_strain (qa/strain_p999 0.3529 at frame 32, bound 0.25)"
+    again.sim.report["escalated_from"] = {"settings": "xpbd default 20x4, sor 1.6",
+                                          "reason": why, "wall_time_s": 25.0}
+    sf.write_shard(tmp_path / "shard-00000.h5", [plain, again])
+    rows = {row["index"]: row for row in manifest_rows(tmp_path)}
+    assert rows[0]["escalated"] is None
+    assert rows[1]["escalated"] == why

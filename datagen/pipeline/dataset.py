@@ -156,9 +156,12 @@ def manifest_rows(out: Path) -> list[dict]:
                 garments = g.get("garments", {})
                 qa = {k: float(v[()].max()) for k, v in g.get("qa", {}).items()}
                 timings = json.loads(g.attrs.get("timings", "{}"))
+                report = json.loads(g["sim"].attrs["report"]) if "sim" in g else {}
                 rows.append({
                     "id": seq_id, "index": spec["sequence_index"], "shard": shard.name,
                     "status": "ok", "reason": None, "split": spec["split"],
+                    # simulated again one preset up (stages.simulate_within_bounds): why
+                    "escalated": (report.get("escalated_from") or {}).get("reason"),
                     "garments": [str(garments[n].attrs["type"]) for n in garments],
                     "fabrics": [str(garments[n].attrs["fabric"]) for n in garments],
                     "action": spec["motion"]["action"], "frames": int(g.attrs["frames"]),
@@ -219,6 +222,8 @@ def write_card(out: Path, loaded: LoadedRecipe, rows: list[dict], wall: float | 
            f"{len(rows) / max(wall, 1e-9) * 3600:.0f} sequences per hour" if wall else ""),
         f"- QA over all frames: worst 99.9th-percentile strain {qa_strain:.3f}, worst share of "
         f"vertices deeper than the fabric thickness in the body {qa_deep:.4f}",
+        f"- simulated again one quality preset up after a first run broke a bound or went "
+        f"unstable: {sum(1 for r in ok if r.get('escalated'))} of the finished",
         "",
         "## Splits", "", table(Counter(r["split"] for r in ok), "split"), "",
         "## Garment types", "", table(Counter(g for r in ok for g in r["garments"]), "type"), "",
