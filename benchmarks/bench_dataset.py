@@ -65,8 +65,10 @@ def cloth3d_sample(k: int) -> dict:
         times.append(time.perf_counter() - t)
         frames.append(record.spec.motion.frames)
         status[record.status] += 1
+        first = record.sim.report.get("escalated_from") if record.sim is not None else None
         print(f"cloth3d sequence {index}: {record.status} in {times[-1]:.0f} s "
-              f"({record.reason or 'ok'})", flush=True)
+              f"({record.reason or 'ok'}"
+              f"{'; simulated again after: ' + first['reason'] if first else ''})", flush=True)
     return {"times": times, "frames": frames, "status": status,
             "sequences": loaded.recipe.sequences}
 
