@@ -642,6 +642,29 @@ def test_over_relaxed_sweeps_follow_the_converged_swing_closer_at_the_same_cost(
         swing(sor=2.0)
 
 
+def test_the_body_grid_lists_each_cell_in_triangle_order():
+    """The closest-triangle search keeps the first of equally near triangles, so a parallel
+    fill's order (threads reaching a cell in any order) would decide contacts: grid_sort puts
+    every cell's triangles in index order, as a serial fill files them."""
+    import taichi as ti
+
+    from datagen.sim import kernels as K
+    from datagen.sim.backend import init_taichi
+
+    init_taichi()
+    rng = np.random.default_rng(3)
+    sizes = rng.integers(0, 7, 50)
+    starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int32)
+    lists = [np.sort(rng.choice(1000, k, replace=False)) for k in sizes]
+    shuffled = np.concatenate([rng.permutation(cell) for cell in lists]).astype(np.int32)
+    items = ti.ndarray(ti.i32, len(shuffled))
+    items.from_numpy(shuffled)
+    starts_nd = ti.ndarray(ti.i32, len(starts))
+    starts_nd.from_numpy(starts)
+    K.grid_sort(starts_nd, items, len(sizes))
+    np.testing.assert_array_equal(items.to_numpy(), np.concatenate(lists))
+
+
 def test_colouring_gives_each_colour_vertex_disjoint_elements():
     """Coloured sweeps (parallel backends) update a colour's elements at once, which is exact
     Gauss-Seidel only if no two of them share a vertex."""

@@ -10,7 +10,7 @@ import numpy as np
 import taichi as ti
 
 from datagen.sim import kernels as K
-from datagen.sim.backend import init_taichi
+from datagen.sim.backend import init_taichi, serial
 from datagen.sim.precision import NP_REAL, REAL, VEC3
 
 
@@ -173,6 +173,8 @@ class BodyCollider:
             self.starts,
             self.items,
         )
+        if not serial():
+            K.grid_sort(self.starts, self.items, n_cells)
         # grid_fill used counts as cursors; they must be zero for the next frame's counting.
         self.counts.fill(0)
 
