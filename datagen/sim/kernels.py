@@ -1124,21 +1124,29 @@ def grid_fill(
                         items[starts[cell] + slot] = t
 
 
-@ti.kernel
-def grid_sort(starts: I1, items: I1, n_cells: ti.i32):
-    """Each cell's triangles in index order. A parallel grid_fill files them in whatever order
-    its threads reach a cell, and the closest-triangle search keeps the first of equally near
-    triangles (the several that share a vertex nearest a point), so without this a GPU's
-    contacts, and a chaotic sequence with them, differ from run to run. A serial fill already
-    files them in index order (the caller skips this there)."""
-    for c in range(n_cells):  # insertion sort: a cell holds a few triangles
+@ti.func
+def sort_cells(starts: I1, items: I1, n_cells: ti.i32):
+    """Each cell's list of a grid (items[starts[c]:starts[c + 1]]) in ascending order, one
+    cell per thread: a grid filled by atomic cursors lists a cell in whatever order threads
+    reached it. Insertion sort: a cell holds a few entries."""
+    for c in range(n_cells):
         for q in range(starts[c] + 1, starts[c + 1]):
-            t = items[q]
+            v = items[q]
             k = q
-            while k > starts[c] and items[k - 1] > t:
+            while k > starts[c] and items[k - 1] > v:
                 items[k] = items[k - 1]
                 k -= 1
-            items[k] = t
+            items[k] = v
+
+
+@ti.kernel
+def grid_sort(starts: I1, items: I1, n_cells: ti.i32):
+    """Each cell's triangles in index order (sort_cells). The closest-triangle search keeps
+    the first of equally near triangles (the several that share a vertex nearest a point), so
+    after a parallel grid_fill a GPU's contacts, and a chaotic sequence with them, could differ
+    from run to run. A serial fill already files them in index order (the caller skips this
+    there)."""
+    sort_cells(starts, items, n_cells)
 
 
 @ti.func

@@ -26,6 +26,7 @@ from datagen.sim.kernels import (
     hash_cell,
     limit_after_contact_one,
     self_cell,
+    sort_cells,
     vec3,
 )
 from datagen.sim.precision import REAL
@@ -163,14 +164,7 @@ def self_collide_parallel(x: V3, w: F1, owner: I1, rest: V3, counts: I1, starts:
     for i in x:
         c = self_cell(x[i], inv_cell, mask)
         items[starts[c] + ti.atomic_add(counts[c], 1)] = i
-    for c in range(n_cells):  # insertion sort: a cell holds a few vertices
-        for q in range(starts[c] + 1, starts[c + 1]):
-            v = items[q]
-            k = q
-            while k > starts[c] and items[k - 1] > v:
-                items[k] = items[k - 1]
-                k -= 1
-            items[k] = v
+    sort_cells(starts, items, n_cells)
     for i in x:
         push[i] = self_push(i, x, w, owner, rest, starts, items, inv_cell, mask, radius,
                             min_rest)
