@@ -54,6 +54,7 @@ def run_default(out: Path, workers: int, n: int | None) -> dict:
 def cloth3d_sample(k: int) -> dict:
     """Core-seconds per sequence of the CLOTH3D recipe, from k of its sequences."""
     from datagen.pipeline.dataset import compute_sequence
+    from datagen.pipeline.stages import escalation_note
     from datagen.recipe import load_recipe
 
     recipe = REPO / "pipelines" / "cloth3d.yaml"
@@ -65,10 +66,8 @@ def cloth3d_sample(k: int) -> dict:
         times.append(time.perf_counter() - t)
         frames.append(record.spec.motion.frames)
         status[record.status] += 1
-        first = record.sim.report.get("escalated_from") if record.sim is not None else None
         print(f"cloth3d sequence {index}: {record.status} in {times[-1]:.0f} s "
-              f"({record.reason or 'ok'}"
-              f"{'; simulated again after: ' + first['reason'] if first else ''})", flush=True)
+              f"({record.reason or 'ok'}{escalation_note(record.sim)})", flush=True)
     return {"times": times, "frames": frames, "status": status,
             "sequences": loaded.recipe.sequences}
 

@@ -121,9 +121,11 @@ def _hard_case_rows(scenes: Path) -> list[dict]:
         with open(path, "rb") as f:
             saved = pickle.load(f)
         t = time.perf_counter()
+        escalated = None
         try:
             sim = simulate_within_bounds(saved["garments"], saved["body"], saved["options"])
             record = SimpleNamespace(status="ok", sim=sim, garments=saved["garments"])
+            escalated = sim.report.get("escalated_from")
         except RejectedSequence as exc:
             record = SimpleNamespace(status="rejected", stage=exc.stage, reason=exc.reason)
         result = judge(cases[name], record)
@@ -133,8 +135,7 @@ def _hard_case_rows(scenes: Path) -> list[dict]:
                      "strain_share_max": result.strain_share_max,
                      "deep_share_max": result.deep_share_max,
                      "kinetic_per_kg_max": result.kinetic_per_kg_max,
-                     "escalated_from": sim.report.get("escalated_from")
-                     if record.status == "ok" else None,
+                     "escalated_from": escalated,
                      "wall_s": time.perf_counter() - t})
         print(json.dumps(rows[-1]), flush=True)
     return rows

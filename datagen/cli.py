@@ -342,9 +342,9 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, so
         f"{float(sim.qa['deep_share'].max()):.4f}"
     )
     if rep.get("escalated_from"):
-        first = rep["escalated_from"]
-        click.echo(f"  simulated again at {rep['quality']}: the run at {first['settings']} broke "
-                   f"a bound ({first['reason']})")
+        from datagen.pipeline.stages import escalation_note
+
+        click.echo("  " + escalation_note(sim).removeprefix("; "))
     start = record.body.lead_in_frames
     if export_obj:
         from datagen.io.export import write_obj_sequence

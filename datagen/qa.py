@@ -48,7 +48,8 @@ def strain_limit(fabric_names: Iterable[str],
     neighbour's strain. None when there are no garments."""
     from datagen.sim.fabrics import get_fabric
 
-    limits = [get_fabric(name, dict(user_fabrics or {})).max_strain for name in fabric_names]
+    extra = dict(user_fabrics or {})
+    limits = [get_fabric(name, extra).max_strain for name in fabric_names]
     return max(limits) if limits else None
 
 

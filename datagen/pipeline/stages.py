@@ -130,11 +130,14 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
         second = simulate(garments, body, up)
     except RejectedSequence as exc:
         raise RejectedSequence(
-            exc.stage, f"{exc.reason}; simulated again at {up.steps_label()}, after the run "
-            f"at {first}: {why}", exc.frames) from None
+            exc.stage, exc.reason + _both_runs(up.steps_label(), first, why), exc.frames) from None
     second.report["escalated_from"] = {"settings": first, "reason": why,
                                        "wall_time_s": first_wall}
     return second
+
+
+def _both_runs(second: str, first: str, why: str) -> str:
+    return f"; simulated again at {second}, after the run at {first}: {why}"
 
 
 def escalation_note(sim: SimResult | None) -> str:
@@ -143,9 +146,9 @@ def escalation_note(sim: SimResult | None) -> str:
     first = sim.report.get("escalated_from") if sim is not None else None
     if first is None:
         return ""
-    return (f"; simulated again at {sim.report['quality']} {sim.report['substeps']}x"
-            f"{sim.report['iterations']}, sor {sim.report['sor']:g}, after the run at "
-            f"{first['settings']}: {first['reason']}")
+    rep = sim.report
+    second = f"{rep['quality']} {rep['substeps']}x{rep['iterations']}, sor {rep['sor']:g}"
+    return _both_runs(second, first["settings"], first["reason"])
 
 
 def reject_over_qa_bounds(record: SequenceRecord) -> SequenceRecord:

@@ -110,11 +110,12 @@ class SimOptions:
         if self.substeps is not None or self.iterations is not None:
             return None
         names = list(QUALITY_PRESETS.get(self.solver, {}))
-        if self.quality not in names or names.index(self.quality) + 1 >= len(names):
+        above = names.index(self.quality) + 1 if self.quality in names else len(names)
+        if above >= len(names):
             return None
         sor = self.sor if self.sor is not None or self.solver not in OVER_RELAXATION \
             else ESCALATED_SOR
-        return replace(self, quality=names[names.index(self.quality) + 1], sor=sor)
+        return replace(self, quality=names[above], sor=sor)
 
     def steps_label(self) -> str:
         """'default 20x4, sor 1.6': the settings a run of these options used, in words."""
