@@ -1,4 +1,4 @@
-"""Runs two small scenes in a process of its own, for tests/test_sim_physics.py: Taichi's thread
+"""Runs three small scenes in a process of its own, for tests/test_sim_physics.py: Taichi's thread
 count is fixed once per process (DATAGEN_TI_THREADS), and sweeps are coloured where it is above
 one (a GPU's form of the solver, run on this CPU's threads).
 
@@ -11,6 +11,7 @@ Usage: python tests/parallel_sweeps.py MODE OUT.npz, MODE one of
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 
 import numpy as np
 
@@ -22,6 +23,7 @@ def main(mode: str, out: str) -> None:
     if mode == "coloured":  # the solver's sweeps and the presets a parallel backend gets
         solvers.serial = simulate_module.serial = lambda: False
     from datagen.sim.scenes import grid_sheet
+    from datagen.sim.scenes import tube as tube_garment
     from datagen.sim.simulate import SimOptions, simulate
     from datagen.study.scenes import build_scene
 
@@ -35,8 +37,19 @@ def main(mode: str, out: str) -> None:
     scene = build_scene("tube_cylinder", "cotton", "coarse", frames=12)
     tube = simulate(scene.garments, scene.track,
                     SimOptions(frames=scene.frames, settle_seconds=0.0, strain_refinements=0))
+    # Two coaxial tubes on the same cylinder, the outer one (layer 1) pressing on the inner
+    # (garment-garment collision: the inner surface's normals and the pushes it takes).
+    inner = tube_garment(0.112, 0.30, 48, 16, top=0.58, name="inner", flare=0.03)
+    inner.pinned = inner.loops["waist"]
+    outer = replace(tube_garment(0.118, 0.24, 48, 12, top=0.575, name="outer", flare=0.03), layer=1)
+    outer.pinned = outer.loops["waist"]
+    layered = simulate([inner, outer], scene.track,
+                       SimOptions(frames=scene.frames, settle_seconds=0.0, strain_refinements=0))
     np.savez(
         out,
+        layers=np.concatenate([layered.vertices["inner"], layered.vertices["outer"]], axis=1),
+        layers_faces=inner.faces,
+        layers_effects=layered.report["effects"],
         serial=solvers.serial(),
         steps=[swing.report["substeps"], swing.report["iterations"]],
         sheet=swing.vertices[sheet.name],

@@ -296,8 +296,16 @@ class ClothSolver:
         # garments' push back on it (kernels.collide_layer_one).
         n_layer = self.n if self.use_layers else 1
         self.layer_nrm = ti.ndarray(VEC3, n_layer)
-        self.layer_react = ti.ndarray(VEC4, n_layer)
-        self.layer_react.fill(0.0)
+        if serial():
+            self.layer_react = ti.ndarray(VEC4, n_layer)
+        else:  # summed in fixed point, and normals gathered per vertex (parallel_kernels)
+            self.layer_react = ti.ndarray(K.REACT_EXACT, n_layer)
+            # Each vertex's inner faces in ascending order (entry // 3 of the flattened faces).
+            vf_starts, vf_items = (_vertex_lists(faces.ravel(), self.n) if self.use_layers
+                                   else (np.zeros(2, np.int32), np.zeros(1, np.int64)))
+            self.layer_vf_starts = _nd(ti.i32, vf_starts)
+            self.layer_vf_items = _nd(ti.i32, (vf_items // 3).astype(np.int32))
+        self.layer_react.fill(0)
         self.layer_count = ti.ndarray(REAL, n_layer)  # pushes each took in the last substep
         self.layer_count.fill(0.0)
         self.layer_tri = _nd(ti.i32, -np.ones(self.n, np.int32))
@@ -345,8 +353,14 @@ class ClothSolver:
             c = self.layer_collider
             self._run("garment_collision", c.nearest, self.x, self.layer_w, self.layer_tri, s1,
                       True, self.layer_guard, self.layer_odo + s1 * self.layer_travel)
-            self._run("garment_collision", K.layer_normals, self.x, c.faces, self.layer_nrm)
-            self._run("garment_collision", K.collide_layers, self.x, self.xp, self.w,
+            if serial():
+                self._run("garment_collision", K.layer_normals, self.x, c.faces,
+                          self.layer_nrm)
+            else:
+                self._run("garment_collision", PK.layer_normals_gathered, self.x, c.faces,
+                          self.layer_vf_starts, self.layer_vf_items, self.layer_nrm)
+            collide = K.collide_layers if serial() else PK.collide_layers_exact
+            self._run("garment_collision", collide, self.x, self.xp, self.w,
                       self.layer_w, self.layer_tri, c.faces, c.fadj, self.layer_nrm,
                       self.thickness, self.friction, self.settings.recover_speed * h,
                       2.0 * c.cell, self.contact_n, self.contact_v, h, self.layer_react,
