@@ -1365,12 +1365,12 @@ def _layer_contact_inputs():
 
 
 def test_layer_contact_on_parallel_backends_is_the_serial_contact_summed_exactly():
-    """Garment-garment collision on parallel backends (parallel_kernels): the inner garment's
-    normals, each vertex summing its own faces, are the serial loop over faces' normals, and
-    the outer vertices' pushes summed in fixed point move the inner vertices as the float sum
-    does, to far below a float32 position's resolution. Neither sum depends on the order in
-    which threads run: the float sums did (a layered hard case ran 9 cm apart in two GPU runs
-    of the same input)."""
+    """Garment-garment collision on parallel backends: the inner garment's normals, each vertex
+    summing its own faces (parallel_kernels), are the serial loop over faces' normals, and the
+    outer vertices' pushes summed in fixed point (collide_layers, `exact`) move the inner
+    vertices as the float sum does, to far below a float32 position's resolution. Neither sum
+    depends on the order in which threads run: the float sums did (a layered hard case ran
+    9 cm apart in two GPU runs of the same input)."""
     import taichi as ti
 
     from datagen.sim import kernels as K
@@ -1399,17 +1399,17 @@ def test_layer_contact_on_parallel_backends_is_the_serial_contact_summed_exactly
     assert np.allclose(serial_nrm.to_numpy()[:n_inner], [0, 0, 1], atol=0.1)
 
     moved = {}
-    for name, kernel, react in (("float", K.collide_layers, ti.ndarray(VEC4, n)),
-                                ("exact", PK.collide_layers_exact, ti.ndarray(K.REACT_EXACT, n))):
+    for name, exact, react in (("float", False, ti.ndarray(VEC4, n)),
+                               ("exact", True, ti.ndarray(K.REACT_EXACT, n))):
         react.fill(0)
         xs = nd(VEC3, x0)
         count = ti.ndarray(REAL, n)
         count.fill(0.0)
-        kernel(xs, nd(VEC3, xp.astype(NP_REAL)), nd(REAL, np.full(n, 50.0, NP_REAL)),
+        K.collide_layers(xs, nd(VEC3, xp.astype(NP_REAL)), nd(REAL, np.full(n, 50.0, NP_REAL)),
                nd(REAL, l_w.astype(NP_REAL)), nd(ti.i32, tri.copy()), faces_nd, fadj_nd,
                serial_nrm, nd(REAL, np.full(n, 0.002, NP_REAL)),
                nd(REAL, np.full(n, 0.3, NP_REAL)), 0.0, 0.02, ti.ndarray(VEC3, n),
-               ti.ndarray(VEC3, n), 1.0 / 600, react, count, True)
+               ti.ndarray(VEC3, n), 1.0 / 600, react, count, True, exact)
         moved[name] = (xs.to_numpy().astype(np.float64), count.to_numpy())
     (xf, cf), (xe, ce) = moved["float"], moved["exact"]
     down = x[:n_inner, 2] - xf[:n_inner, 2]

@@ -1024,15 +1024,25 @@ def collide_layer_one(
 
 
 @ti.func
-def apply_react_one(i: ti.i32, x: V3, react: V4, count: F1):
+def apply_react_one(i: ti.i32, x: V3, react: ti.template(), count: F1, exact: ti.template()):
     """Move an inner vertex by the mean of the pushes it received, and keep their number for
     the next substep's mass splitting. (Summed with each outer vertex asking as if alone, the
-    pushes overshot threefold and set the two garments oscillating.)"""
-    c = react[i][3]
-    if c > 0.0:
-        x[i] += vec3(react[i][0], react[i][1], react[i][2]) / c
-    count[i] = c
-    react[i] = VEC4(0.0)
+    pushes overshot threefold and set the two garments oscillating.) `exact`: the pushes were
+    summed in fixed point (add_react_exact)."""
+    if ti.static(exact):
+        c = ti.cast(react[i][3], REAL)
+        if c > 0.0:
+            total = vec3(ti.cast(react[i][0], REAL), ti.cast(react[i][1], REAL),
+                         ti.cast(react[i][2], REAL))
+            x[i] += total / (REACT_UNITS * c)
+        count[i] = c
+        react[i] = REACT_EXACT(0)
+    else:
+        c = react[i][3]
+        if c > 0.0:
+            x[i] += vec3(react[i][0], react[i][1], react[i][2]) / c
+        count[i] = c
+        react[i] = VEC4(0.0)
 
 
 @ti.kernel
@@ -1052,15 +1062,18 @@ def collide_layers(
     contact_n: V3,
     contact_v: V3,
     h: REAL,
-    react: V4,
+    react: ti.types.ndarray(ndim=1),
     count: F1,
     use_friction: ti.template(),
+    exact: ti.template(),
 ):
+    """Outer garments against the inner one (collide_layer_one), then the pushes they gave it.
+    `exact` (parallel backends): `react` holds REACT_EXACT integers, summed in fixed point."""
     for i in x:
         collide_layer_one(i, x, xp, w, l_w, tri, faces, fadj, nrm, thickness, friction, recover,
-                          release, contact_n, contact_v, h, react, count, use_friction, False)
+                          release, contact_n, contact_v, h, react, count, use_friction, exact)
     for i in x:
-        apply_react_one(i, x, react, count)
+        apply_react_one(i, x, react, count, exact)
 
 
 @ti.func
@@ -1593,7 +1606,7 @@ def xpbd_frame(
                     use_friction, False,
                 )
             for i in range(n):
-                apply_react_one(i, x, l_react, l_count)
+                apply_react_one(i, x, l_react, l_count, False)
         if ti.static(use_self):
             self_hash_build(x, s_counts, s_starts, s_items, s_inv_cell, s_mask)
             for i in range(n):

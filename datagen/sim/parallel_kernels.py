@@ -1,7 +1,8 @@
 """Kernels for parallel backends (a GPU, or several CPU threads) where the serial form is one
 task or sums in the order threads run: the xpbd solver's strain limit after contact (coloured
 sweeps), self-collision (self_collide_parallel), and garment-garment collision (its normals and
-the outer garments' pushes, layer_normals_gathered and collide_layers_exact, below).
+the outer garments' pushes: layer_normals_gathered below, and kernels.collide_layers summing in
+fixed point).
 
 The serial form (kernels.limit_after_contact_active) appends to shared lists, so it runs as one
 task on one thread: on a GPU that is one GPU thread walking every limited spring, in every
@@ -21,10 +22,7 @@ from datagen.sim.kernels import (
     I1,
     I2,
     I3,
-    REACT_EXACT,
-    REACT_UNITS,
     V3,
-    collide_layer_one,
     collide_one,
     colour_range,
     hash_cell,
@@ -182,9 +180,8 @@ def self_collide_parallel(x: V3, w: F1, owner: I1, rest: V3, counts: I1, starts:
 # a loop over faces or outer vertices; in parallel those float sums come out in the order threads
 # run, so two runs of the same input differ at the last bit and a contact-rich scene amplifies
 # that (the layered hard case on a GPU: 8.7 mm apart after the settle, 9 cm by the end). Here
-# each inner vertex gathers its faces' normals itself, and pushes are summed in fixed point.
-
-V4I = ti.types.ndarray(dtype=REACT_EXACT, ndim=1)
+# each inner vertex gathers its faces' normals itself; the pushes are summed in fixed point by
+# kernels.collide_layers (`exact`).
 
 
 @ti.kernel
@@ -201,39 +198,3 @@ def layer_normals_gathered(x: V3, faces: I3, vf_starts: I1, vf_items: I1, nrm: V
         nrm[i] = total
     for i in nrm:
         layer_normal_finish_one(i, nrm)
-
-
-@ti.kernel
-def collide_layers_exact(
-    x: V3,
-    xp: V3,
-    w: F1,
-    l_w: F1,
-    tri: I1,
-    faces: I3,
-    fadj: I3,
-    nrm: V3,
-    thickness: F1,
-    friction: F1,
-    recover: REAL,
-    release: REAL,
-    contact_n: V3,
-    contact_v: V3,
-    h: REAL,
-    react: V4I,
-    count: F1,
-    use_friction: ti.template(),
-):
-    """kernels.collide_layers with the pushes on each inner vertex summed in fixed point
-    (kernels.REACT_UNITS): the same contact, a result independent of thread order."""
-    for i in x:
-        collide_layer_one(i, x, xp, w, l_w, tri, faces, fadj, nrm, thickness, friction, recover,
-                          release, contact_n, contact_v, h, react, count, use_friction, True)
-    for i in x:
-        c = react[i][3]
-        if c > 0:
-            total = vec3(ti.cast(react[i][0], REAL), ti.cast(react[i][1], REAL),
-                         ti.cast(react[i][2], REAL))
-            x[i] += total / (REACT_UNITS * ti.cast(c, REAL))
-        count[i] = ti.cast(c, REAL)
-        react[i] = ti.Vector([0, 0, 0, 0], ti.i64)

@@ -359,12 +359,11 @@ class ClothSolver:
             else:
                 self._run("garment_collision", PK.layer_normals_gathered, self.x, c.faces,
                           self.layer_vf_starts, self.layer_vf_items, self.layer_nrm)
-            collide = K.collide_layers if serial() else PK.collide_layers_exact
-            self._run("garment_collision", collide, self.x, self.xp, self.w,
+            self._run("garment_collision", K.collide_layers, self.x, self.xp, self.w,
                       self.layer_w, self.layer_tri, c.faces, c.fadj, self.layer_nrm,
                       self.thickness, self.friction, self.settings.recover_speed * h,
                       2.0 * c.cell, self.contact_n, self.contact_v, h, self.layer_react,
-                      self.layer_count, self.effects.friction)
+                      self.layer_count, self.effects.friction, not serial())
         if self.use_self:
             if not serial():
                 self._run("self_collision", PK.self_collide_parallel, self.x, self.w,
