@@ -942,7 +942,8 @@ def layer_normals(x: V3, faces: I3, nrm: V3):
 # (REACT_UNITS per metre, 64-bit integers): threads add them in whatever order they run, and
 # integer sums do not depend on it, where float sums do (on a GPU the layered hard case ran
 # 8.7 mm apart by the end of the settle in two runs of the same input). 2^-36 m is far below a
-# float32 position's resolution, and 2^27 m of range is ample.
+# float32 position's resolution, and 2^27 m of range is ample. (64-bit integer atomics: CUDA
+# and the CPU have them; a backend without them would need another order-independent sum.)
 REACT_UNITS = 2.0**36
 REACT_EXACT = ti.types.vector(4, ti.i64)
 
