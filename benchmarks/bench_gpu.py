@@ -10,10 +10,14 @@ This project's machines have no GPU, so the benchmark has two halves:
 
     python -m benchmarks.bench_gpu --save-scenes SCENES  # here: the body scenes (Anny)
     python -m benchmarks.bench_gpu --run OUT_DIR --scenes SCENES  # on the GPU machine
+    python -m benchmarks.bench_gpu --repeat OUT_DIR --scenes SCENES  # on the GPU machine
     python -m benchmarks.bench_gpu --report OUT_DIR      # here: errors, docs/benchmarks.md
 
 `--run` starts one process per backend (both at once: the CPU run takes one core of many) and
-writes their figures and trajectories to OUT_DIR. `--report` measures each trajectory against
+writes their figures and trajectories to OUT_DIR. `--repeat` (a call of its own: about four
+minutes on an H100) simulates the 4k sheet and the saved hard cases twice each on the GPU from
+the same input and compares the trajectories frame by frame: the same seed must give the same
+data there too. `--report` measures each trajectory against
 the float64 reference of bench_sim (implicit, REF_SUBSTEPS per frame, over the predictable
 horizon), computed here, and writes the section. The scenes with a body (the walking t-shirt,
 HARD_CASES) are pickled here by `--save-scenes`: their bodies come from Anny, which the GPU
@@ -141,6 +145,45 @@ def _hard_case_rows(scenes: Path) -> list[dict]:
     return rows
 
 
+def _repeat_rows(scenes: Path | None) -> list[dict]:
+    """The 4k cotton sheet (the peer's effects) and each saved hard case simulated twice in this
+    process from the same input: the first frame at which the two runs differ, if any."""
+    import pickle
+
+    from datagen.sim.simulate import SimOptions, simulate
+    from datagen.study.run import PEER_EFFECTS
+    from datagen.study.scenes import build_scene
+
+    sheet = build_scene("sheet_sphere", "cotton", "4k", frames=RATE_FRAMES)
+    inputs = [("sheet_sphere 4k cotton", sheet.garments, sheet.track,
+               SimOptions(effects=PEER_EFFECTS, frames=RATE_FRAMES, profile_every=0,
+                          strain_refinements=0, settle_seconds=0.0))]
+    for name in HARD_CASES:
+        path = scenes / f"hard_{name}.pkl" if scenes else None
+        if path and path.exists():
+            with open(path, "rb") as f:
+                saved = pickle.load(f)
+            inputs.append((name, saved["garments"], saved["body"], saved["options"]))
+    rows = []
+    for name, garments, body, options in inputs:
+        runs, walls, qa = [], [], []
+        for _ in range(2):
+            t = time.perf_counter()
+            sim = simulate(garments, body, options)
+            walls.append(time.perf_counter() - t)
+            runs.append(np.concatenate([sim.vertices[g] for g in sim.garment_names], axis=1))
+            qa.append({"over_strain_max": float(np.max(sim.qa["over_strain_share"])),
+                       "deep_max": float(np.max(sim.qa["deep_share"]))})
+        gap = np.abs(runs[1].astype(np.float64) - runs[0]).max(axis=(1, 2))
+        differing = np.flatnonzero(gap)
+        rows.append({"case": name, "frames": len(gap), "vertices": runs[0].shape[1],
+                     "identical": len(differing) == 0,
+                     "first_differing_frame": int(differing[0]) if len(differing) else None,
+                     "max_gap_mm": 1000 * float(gap.max()), "wall_s": walls, "qa": qa})
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
 def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
     """Run every case on one backend in this process (Taichi's backend is fixed per process).
     Modes: `cases` (CASES and the t-shirt); `profile`, the first case over PROFILE_FRAMES with
@@ -148,7 +191,7 @@ def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
     which); `batch`, batched_sheets at each of BATCHES; `serial_limit`, the first case with the
     strain limit after contact in its serial form (one task) instead of coloured sweeps;
     `hard`, HARD_CASES from `scenes`; `self_collision`, the 5k cotton tube with its own effects
-    and without self-collision."""
+    and without self-collision; `repeat`, _repeat_rows."""
     os.environ["DATAGEN_TI_ARCH"] = arch
     profile = mode == "profile"
     if profile:
@@ -178,6 +221,9 @@ def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
         cases.append((*TSHIRT, tshirt))
     if mode == "hard":
         out.write_text(json.dumps(_hard_case_rows(scenes), indent=1))
+        return
+    if mode == "repeat":
+        out.write_text(json.dumps(_repeat_rows(scenes), indent=1))
         return
     if mode == "self_collision":  # the skirt-like tube with its own effects, and without one
         rows = []
@@ -309,6 +355,27 @@ def _reference(row: dict, out_dir: Path) -> tuple[np.ndarray, int]:
     return d["ref"], int(d["horizon"])
 
 
+def repeat_lines(rows: list[dict]) -> list[str]:
+    """The report's table of a --repeat run."""
+    lines = [
+        "",
+        f"The same input twice on the GPU (`{COMMAND} --repeat`, a call of its own; each pair "
+        "in one process, compared frame by frame):",
+        "",
+        "| case | frames | vertices | same trajectory | first differing frame | "
+        "largest gap mm | edges over bound (max), runs | wall s, runs |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        first = "-" if r["first_differing_frame"] is None else r["first_differing_frame"]
+        over = ", ".join(f"{100 * q['over_strain_max']:.3f} %" for q in r["qa"])
+        walls = ", ".join(f"{w:.0f}" for w in r["wall_s"])
+        lines.append(f"| {r['case']} | {r['frames']} | {r['vertices']} | "
+                     f"{'yes' if r['identical'] else 'NO'} | {first} | "
+                     f"{r['max_gap_mm']:.3g} | {over} | {walls} |")
+    return lines
+
+
 def report(out_dir: Path) -> None:
     """The section of docs/benchmarks.md from a --run folder, and the figures with their errors
     as summary.json in it."""
@@ -426,6 +493,8 @@ def report(out_dir: Path) -> None:
         f"{one_cpu * widest['copies'] / widest['s_per_sim_s']:.1f}x one CPU thread's rate "
         "for one sheet (measured in the same run).",
     ]
+    if (out_dir / "repeat_cuda.json").exists():
+        lines += repeat_lines(load("repeat_cuda"))
     faster = [(g, c) for g, c in zip(hard.get("cuda", []), hard.get("cpu", []), strict=True)
               if g["wall_s"] < c["wall_s"]]
     lines += [f"Of the hard cases, {g['case']} ({g['vertices']} vertices) ran faster on the GPU "
@@ -441,6 +510,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run", type=Path, help="run both backends, figures into this folder")
+    parser.add_argument("--repeat", type=Path,
+                        help="on the GPU: each case twice from the same input, into this folder")
     parser.add_argument("--report", type=Path, help="write the section from a --run folder")
     parser.add_argument("--worker", choices=["cuda", "cpu"], help=argparse.SUPPRESS)
     parser.add_argument("--mode", default="cases", help=argparse.SUPPRESS)
@@ -454,12 +525,15 @@ def main(argv: list[str] | None = None) -> None:
         _worker(args.worker, args.out, args.scenes, args.mode)
     elif args.run:
         run_all(args.run, args.scenes)
+    elif args.repeat:
+        args.repeat.mkdir(parents=True, exist_ok=True)
+        _worker("cuda", args.repeat / "repeat_cuda.json", args.scenes, "repeat")
     elif args.report:
         report(args.report)
     elif args.save_scenes:
         save_scenes(args.save_scenes)
     else:
-        parser.error("one of --run, --report or --save-scenes")
+        parser.error("one of --run, --repeat, --report or --save-scenes")
 
 
 if __name__ == "__main__":
