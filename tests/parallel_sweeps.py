@@ -1,4 +1,4 @@
-"""Runs three small scenes in a process of its own, for tests/test_sim_physics.py: Taichi's thread
+"""Runs four small scenes in a process of its own, for tests/test_sim_physics.py: Taichi's thread
 count is fixed once per process (DATAGEN_TI_THREADS), and sweeps are coloured where it is above
 one (a GPU's form of the solver, run on this CPU's threads).
 
@@ -45,8 +45,14 @@ def main(mode: str, out: str) -> None:
     outer.pinned = outer.loops["waist"]
     layered = simulate([inner, outer], scene.track,
                        SimOptions(frames=scene.frames, settle_seconds=0.0, strain_refinements=0))
+    # The explicit baseline on the tube, 4 frames (its forces gathered per vertex there).
+    short = build_scene("tube_cylinder", "cotton", "coarse", frames=4)
+    explicit = simulate(short.garments, short.track,
+                        SimOptions(solver="explicit", substeps=400, iterations=1, frames=4,
+                                   settle_seconds=0.0, strain_refinements=0))
     np.savez(
         out,
+        explicit=explicit.vertices[short.garments[0].name],
         layers=np.concatenate([layered.vertices["inner"], layered.vertices["outer"]], axis=1),
         layers_faces=inner.faces,
         layers_effects=layered.report["effects"],

@@ -709,7 +709,8 @@ def test_coloured_sweeps_on_two_threads_equal_one_thread_and_stay_physical(tmp_p
     the peer scenes measure convergence: docs/simulator.md), its strain within leather's
     bound; the cotton tube on its swinging cylinder stays out of the body and within cotton's
     bound; a second tube over it (garment-garment collision, whose sums on parallel backends
-    are order-independent: parallel_kernels) stays outside it. The Jacobi sweeps that this
+    are order-independent: parallel_kernels) stays outside it; the explicit baseline, whose
+    forces are gathered per vertex there, follows its serial run. The Jacobi sweeps that this
     path replaced ran the same sheet away (120 m/s at frame 1, after retries)."""
     import os
     import subprocess
@@ -731,8 +732,12 @@ def test_coloured_sweeps_on_two_threads_equal_one_thread_and_stay_physical(tmp_p
     assert not bool(runs["coloured"]["serial"])
     assert runs["serial"]["steps"].tolist() == [20, 4]
     assert runs["threads"]["steps"].tolist() == [40, 8]
-    for key in ("sheet", "tube", "layers"):
+    for key in ("sheet", "tube", "layers", "explicit"):
         assert np.array_equal(runs["coloured"][key], runs["threads"][key]), key
+    # The explicit solver's gathered forces are its scattered ones to rounding: its tube after
+    # 4 frames is where the serial run's is (the sweeps' presets do not apply to it).
+    gap = np.abs(runs["threads"]["explicit"] - runs["serial"]["explicit"]).max()
+    assert gap < 1e-3, gap
 
     sheet = grid_sheet(40, 1.0, 1.5, fabric="leather")
     sheet.pinned = np.flatnonzero(np.isclose(sheet.vertices[:, 0], -0.5))
@@ -1416,3 +1421,43 @@ def test_layer_contact_on_parallel_backends_is_the_serial_contact_summed_exactly
     assert (down > 1e-4).sum() >= 10 and down.min() > -1e-7  # many pushed down, none up
     assert np.array_equal(cf, ce) and cf.max() >= 2  # the same pushes, some shared
     assert np.abs(xe - xf).max() < 1e-8
+
+
+def test_explicit_forces_gathered_per_vertex_are_the_scattered_forces():
+    """On parallel backends the explicit solver sums each vertex's spring and bending forces
+    itself (parallel_kernels), where the serial kernels add each element's force into its
+    vertices in loop order: the same forces, to float rounding, on a crumpled denim sheet
+    moving at random (every spring set, stretched and compressed, and the bending)."""
+    import taichi as ti
+
+    from datagen.sim import kernels as K
+    from datagen.sim import parallel_kernels as PK
+    from datagen.sim.precision import VEC3
+
+    sheet = grid_sheet(12, 0.3, 0.0, fabric="denim")
+    model = build_cloth_model([(sheet, FABRICS["denim"])])
+    effects = Effects(body_collision=False, friction=False, air_drag=False)
+    solver = make_solver("explicit", model, effects, SolverSettings(substeps=100))
+    rng = np.random.default_rng(5)
+    x = sheet.vertices + rng.normal(0, 0.003, sheet.vertices.shape)
+    solver.set_state(x, rng.normal(0, 0.5, x.shape))
+    assert len(solver.sets) >= 2 and solver.n_bends > 0
+    forces = {}
+    for form in ("scattered", "gathered"):
+        f = ti.ndarray(VEC3, model.n_vertices)
+        for s in solver.sets.values():
+            args = (solver.x, solver.v, f, s.springs, s.rest, s.k_t, s.k_c, s.beta)
+            ends = s.springs.to_numpy()[: s.count]
+            if form == "scattered":
+                K.spring_forces(*args)
+            else:
+                PK.spring_forces_gathered(*args, *solver._lists(ends.T.ravel()))
+        args = (solver.x, solver.v, f, solver.bends, solver.kw, solver.bstiff, solver.bbeta)
+        if form == "scattered":
+            K.bend_forces(*args)
+        else:
+            PK.bend_forces_gathered(*args, *solver._lists(model.bends.ravel()))
+        forces[form] = f.to_numpy().astype(np.float64)
+    scale = np.abs(forces["scattered"]).max()
+    assert scale > 0.1  # newtons: the sheet is stretched, bent and moving
+    assert np.abs(forces["gathered"] - forces["scattered"]).max() < 1e-5 * scale

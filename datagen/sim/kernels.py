@@ -593,34 +593,49 @@ def bends_coloured(
 
 
 # -- explicit forces ---------------------------------------------------------------------------
+@ti.func
+def spring_force(x: V3, v: V3, springs: I2, rest: F1, k_t: F1, k_c: F1, beta: F1,
+                 e: ti.i32) -> vec3:
+    """Spring e's force on its first vertex (its second takes the opposite)."""
+    i = springs[e][0]
+    j = springs[e][1]
+    d = x[j] - x[i]
+    length = d.norm()
+    fe = vec3(0.0)
+    if length > 1e-9:
+        n = d / length
+        c = length - rest[e]
+        k = k_t[e]
+        if c < 0.0:
+            k = k_c[e]
+        fe = (k * c + beta[e] * k * n.dot(v[j] - v[i])) * n
+    return fe
+
+
+@ti.func
+def bend_force(x: V3, v: V3, bends: I4, kw: V4, stiff: F1, beta: F1, b: ti.i32) -> vec3:
+    """Bending stencil b's generalised force: its q-th vertex takes -kw[b][q] times it."""
+    s = bends[b]
+    k = kw[b]
+    c = k[0] * x[s[0]] + k[1] * x[s[1]] + k[2] * x[s[2]] + k[3] * x[s[3]]
+    cv = k[0] * v[s[0]] + k[1] * v[s[1]] + k[2] * v[s[2]] + k[3] * v[s[3]]
+    return stiff[b] * (c + beta[b] * cv)
+
+
 @ti.kernel
 def spring_forces(x: V3, v: V3, f: V3, springs: I2, rest: F1, k_t: F1, k_c: F1, beta: F1):
     for e in range(springs.shape[0]):
-        i = springs[e][0]
-        j = springs[e][1]
-        d = x[j] - x[i]
-        length = d.norm()
-        if length > 1e-9:
-            n = d / length
-            c = length - rest[e]
-            k = k_t[e]
-            if c < 0.0:
-                k = k_c[e]
-            fe = (k * c + beta[e] * k * n.dot(v[j] - v[i])) * n
-            f[i] += fe
-            f[j] -= fe
+        fe = spring_force(x, v, springs, rest, k_t, k_c, beta, e)
+        f[springs[e][0]] += fe
+        f[springs[e][1]] -= fe
 
 
 @ti.kernel
 def bend_forces(x: V3, v: V3, f: V3, bends: I4, kw: V4, stiff: F1, beta: F1):
     for b in range(bends.shape[0]):
-        s = bends[b]
-        k = kw[b]
-        c = k[0] * x[s[0]] + k[1] * x[s[1]] + k[2] * x[s[2]] + k[3] * x[s[3]]
-        cv = k[0] * v[s[0]] + k[1] * v[s[1]] + k[2] * v[s[2]] + k[3] * v[s[3]]
-        g = stiff[b] * (c + beta[b] * cv)
+        g = bend_force(x, v, bends, kw, stiff, beta, b)
         for q in ti.static(range(4)):
-            f[s[q]] -= k[q] * g
+            f[bends[b][q]] -= kw[b][q] * g
 
 
 @ti.kernel

@@ -1,8 +1,8 @@
 """Kernels for parallel backends (a GPU, or several CPU threads) where the serial form is one
 task or sums in the order threads run: the xpbd solver's strain limit after contact (coloured
-sweeps), self-collision (self_collide_parallel), and garment-garment collision (its normals and
-the outer garments' pushes: layer_normals_gathered below, and kernels.collide_layers summing in
-fixed point).
+sweeps), self-collision (self_collide_parallel), garment-garment collision (its normals and the
+outer garments' pushes: layer_normals_gathered below, and kernels.collide_layers summing in
+fixed point), and the explicit solver's forces (gathered per vertex).
 
 The serial form (kernels.limit_after_contact_active) appends to shared lists, so it runs as one
 task on one thread: on a GPU that is one GPU thread walking every limited spring, in every
@@ -22,7 +22,10 @@ from datagen.sim.kernels import (
     I1,
     I2,
     I3,
+    I4,
     V3,
+    V4,
+    bend_force,
     collide_one,
     colour_range,
     hash_cell,
@@ -30,6 +33,7 @@ from datagen.sim.kernels import (
     limit_after_contact_one,
     self_cell,
     sort_cells,
+    spring_force,
     vec3,
 )
 from datagen.sim.precision import REAL
@@ -198,3 +202,38 @@ def layer_normals_gathered(x: V3, faces: I3, vf_starts: I1, vf_items: I1, nrm: V
         nrm[i] = total
     for i in nrm:
         layer_normal_finish_one(i, nrm)
+
+
+# -- the explicit solver's forces ----------------------------------------------------------------
+# kernels.spring_forces and bend_forces add each element's force into its vertices from a
+# parallel loop: summed in thread order. Here each vertex sums the forces of its own elements
+# (CSR lists: solvers._vertex_lists), computing each element once per vertex it has.
+
+
+@ti.kernel
+def spring_forces_gathered(x: V3, v: V3, f: V3, springs: I2, rest: F1, k_t: F1, k_c: F1,
+                           beta: F1, starts: I1, entries: I1):
+    """Entries below the spring count are springs whose first vertex this is, the others
+    (minus the count) those whose second vertex it is."""
+    n_springs = springs.shape[0]
+    for i in f:
+        total = vec3(0.0)
+        for q in range(starts[i], starts[i + 1]):
+            k = entries[q]
+            if k < n_springs:
+                total += spring_force(x, v, springs, rest, k_t, k_c, beta, k)
+            else:
+                total -= spring_force(x, v, springs, rest, k_t, k_c, beta, k - n_springs)
+        f[i] += total
+
+
+@ti.kernel
+def bend_forces_gathered(x: V3, v: V3, f: V3, bends: I4, kw: V4, stiff: F1, beta: F1,
+                         starts: I1, entries: I1):
+    """Entry 4 b + q: vertex q of bending stencil b is this one."""
+    for i in f:
+        total = vec3(0.0)
+        for q in range(starts[i], starts[i + 1]):
+            b = entries[q] // 4
+            total -= kw[b][entries[q] % 4] * bend_force(x, v, bends, kw, stiff, beta, b)
+        f[i] += total

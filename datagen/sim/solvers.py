@@ -868,34 +868,35 @@ class ExplicitSolver(ClothSolver):
     def __init__(self, model, effects, settings) -> None:
         super().__init__(model, effects, settings)
         self.f = _nd(VEC3, np.zeros((self.n, 3), NP_REAL))
+        # Parallel backends gather each vertex's forces (parallel_kernels): the scatter's
+        # float adds come out in thread order, and runs of one input would differ.
+        self.gathered = not serial()
+        if self.gathered:
+            self.set_lists = {}
+            for name, s in self.sets.items():
+                ends = s.springs.to_numpy()[: s.count]
+                self.set_lists[name] = self._lists(np.concatenate([ends[:, 0], ends[:, 1]]))
+            if self.n_bends:
+                self.bend_lists = self._lists(model.bends.ravel())
+
+    def _lists(self, owner: np.ndarray):
+        starts, entries = _vertex_lists(owner, self.n)
+        return _nd(ti.i32, starts), _nd(ti.i32, entries.astype(np.int32))
 
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
         e = self.effects
         for name, s in self.sets.items():
-            self._run(
-                name,
-                K.spring_forces,
-                self.x,
-                self.v,
-                self.f,
-                s.springs,
-                s.rest,
-                s.k_t,
-                s.k_c,
-                s.beta,
-            )
+            args = (self.x, self.v, self.f, s.springs, s.rest, s.k_t, s.k_c, s.beta)
+            if self.gathered:
+                self._run(name, PK.spring_forces_gathered, *args, *self.set_lists[name])
+            else:
+                self._run(name, K.spring_forces, *args)
         if self.n_bends:
-            self._run(
-                "bending",
-                K.bend_forces,
-                self.x,
-                self.v,
-                self.f,
-                self.bends,
-                self.kw,
-                self.bstiff,
-                self.bbeta,
-            )
+            args = (self.x, self.v, self.f, self.bends, self.kw, self.bstiff, self.bbeta)
+            if self.gathered:
+                self._run("bending", PK.bend_forces_gathered, *args, *self.bend_lists)
+            else:
+                self._run("bending", K.bend_forces, *args)
         self._run(
             "integration",
             K.explicit_update,
