@@ -874,7 +874,7 @@ class ExplicitSolver(ClothSolver):
         if self.gathered:
             self.set_lists = {}
             for name, s in self.sets.items():
-                ends = s.springs.to_numpy()[: s.count]
+                ends = s.springs.to_numpy()  # (the kernel reads its length as the count)
                 self.set_lists[name] = self._lists(np.concatenate([ends[:, 0], ends[:, 1]]))
             if self.n_bends:
                 self.bend_lists = self._lists(model.bends.ravel())
