@@ -106,10 +106,20 @@ def save_scenes(folder: Path) -> None:
                          "options": sim_options_from_spec(spec)}, f, protocol=5)
 
 
+def _saved_hard_cases(scenes: Path | None):
+    """(name, saved input) of each of HARD_CASES that --save-scenes pickled into `scenes`."""
+    import pickle
+
+    for name in HARD_CASES:
+        path = scenes / f"hard_{name}.pkl" if scenes else None
+        if path and path.exists():
+            with open(path, "rb") as f:
+                yield name, pickle.load(f)
+
+
 def _hard_case_rows(scenes: Path) -> list[dict]:
     """Each saved hard case through the simulator on this process's backend, judged as
     bench_hard_cases judges it."""
-    import pickle
     from types import SimpleNamespace
 
     from datagen.errors import RejectedSequence
@@ -118,12 +128,7 @@ def _hard_case_rows(scenes: Path) -> list[dict]:
 
     cases = {c.name: c for c in load_hard_cases(REPO / "pipelines" / "hard_cases.yaml").cases}
     rows = []
-    for name in HARD_CASES:
-        path = scenes / f"hard_{name}.pkl"
-        if not path.exists():
-            continue
-        with open(path, "rb") as f:
-            saved = pickle.load(f)
+    for name, saved in _saved_hard_cases(scenes):
         t = time.perf_counter()
         escalated = None
         try:
@@ -148,8 +153,6 @@ def _hard_case_rows(scenes: Path) -> list[dict]:
 def _repeat_rows(scenes: Path | None) -> list[dict]:
     """The 4k cotton sheet (the peer's effects) and each saved hard case simulated twice in this
     process from the same input: the first frame at which the two runs differ, if any."""
-    import pickle
-
     from datagen.sim.simulate import SimOptions, simulate
     from datagen.study.run import PEER_EFFECTS
     from datagen.study.scenes import build_scene
@@ -158,12 +161,8 @@ def _repeat_rows(scenes: Path | None) -> list[dict]:
     inputs = [("sheet_sphere 4k cotton", sheet.garments, sheet.track,
                SimOptions(effects=PEER_EFFECTS, frames=RATE_FRAMES, profile_every=0,
                           strain_refinements=0, settle_seconds=0.0))]
-    for name in HARD_CASES:
-        path = scenes / f"hard_{name}.pkl" if scenes else None
-        if path and path.exists():
-            with open(path, "rb") as f:
-                saved = pickle.load(f)
-            inputs.append((name, saved["garments"], saved["body"], saved["options"]))
+    inputs += [(name, saved["garments"], saved["body"], saved["options"])
+               for name, saved in _saved_hard_cases(scenes)]
     rows = []
     for name, garments, body, options in inputs:
         runs, walls, qa = [], [], []

@@ -1382,7 +1382,7 @@ def test_layer_contact_on_parallel_backends_is_the_serial_contact_summed_exactly
     from datagen.sim import parallel_kernels as PK
     from datagen.sim.backend import init_taichi
     from datagen.sim.precision import NP_REAL, REAL, VEC3, VEC4
-    from datagen.sim.solvers import _vertex_lists
+    from datagen.sim.solvers import _vertex_lists_nd
 
     init_taichi()
     x, xp, l_w, tri, faces, fadj, n_inner = _layer_contact_inputs()
@@ -1397,9 +1397,8 @@ def test_layer_contact_on_parallel_backends_is_the_serial_contact_summed_exactly
     x0 = x.astype(NP_REAL)
     serial_nrm, gathered_nrm = ti.ndarray(VEC3, n), ti.ndarray(VEC3, n)
     K.layer_normals(nd(VEC3, x0), faces_nd, serial_nrm)
-    starts, order = _vertex_lists(faces.ravel(), n)
-    PK.layer_normals_gathered(nd(VEC3, x0), faces_nd, nd(ti.i32, starts),
-                              nd(ti.i32, (order // 3).astype(np.int32)), gathered_nrm)
+    PK.layer_normals_gathered(nd(VEC3, x0), faces_nd, *_vertex_lists_nd(faces.ravel(), n),
+                              gathered_nrm)
     assert np.abs(serial_nrm.to_numpy() - gathered_nrm.to_numpy()).max() < 1e-6
     assert np.allclose(serial_nrm.to_numpy()[:n_inner], [0, 0, 1], atol=0.1)
 
@@ -1433,9 +1432,11 @@ def test_explicit_forces_gathered_per_vertex_are_the_scattered_forces():
     from datagen.sim import kernels as K
     from datagen.sim import parallel_kernels as PK
     from datagen.sim.precision import VEC3
+    from datagen.sim.solvers import _vertex_lists_nd
 
     sheet = grid_sheet(12, 0.3, 0.0, fabric="denim")
     model = build_cloth_model([(sheet, FABRICS["denim"])])
+    n = model.n_vertices
     effects = Effects(body_collision=False, friction=False, air_drag=False)
     solver = make_solver("explicit", model, effects, SolverSettings(substeps=100))
     rng = np.random.default_rng(5)
@@ -1447,16 +1448,16 @@ def test_explicit_forces_gathered_per_vertex_are_the_scattered_forces():
         f = ti.ndarray(VEC3, model.n_vertices)
         for s in solver.sets.values():
             args = (solver.x, solver.v, f, s.springs, s.rest, s.k_t, s.k_c, s.beta)
-            ends = s.springs.to_numpy()
             if form == "scattered":
                 K.spring_forces(*args)
             else:
-                PK.spring_forces_gathered(*args, *solver._lists(ends.T.ravel()))
+                ends = s.springs.to_numpy()
+                PK.spring_forces_gathered(*args, *_vertex_lists_nd(ends.T.ravel(), n))
         args = (solver.x, solver.v, f, solver.bends, solver.kw, solver.bstiff, solver.bbeta)
         if form == "scattered":
             K.bend_forces(*args)
         else:
-            PK.bend_forces_gathered(*args, *solver._lists(model.bends.ravel()))
+            PK.bend_forces_gathered(*args, *_vertex_lists_nd(model.bends.ravel(), n))
         forces[form] = f.to_numpy().astype(np.float64)
     scale = np.abs(forces["scattered"]).max()
     assert scale > 0.1  # newtons: the sheet is stretched, bent and moving

@@ -189,15 +189,15 @@ def self_collide_parallel(x: V3, w: F1, owner: I1, rest: V3, counts: I1, starts:
 
 
 @ti.kernel
-def layer_normals_gathered(x: V3, faces: I3, vf_starts: I1, vf_items: I1, nrm: V3):
+def layer_normals_gathered(x: V3, faces: I3, starts: I1, entries: I1, nrm: V3):
     """kernels.layer_normals with each vertex summing its own faces' area-weighted normals
-    (vf_items[vf_starts[i]:vf_starts[i + 1]]): one thread per sum, so the sums do not depend
-    on how threads are scheduled. (They are not the serial form's bit for bit: the compiler
-    may reassociate a sum in a loop.)"""
+    (entry 3 t + k: corner k of face t is this vertex): one thread per sum, so the sums do not
+    depend on how threads are scheduled. (They are not the serial form's bit for bit: the
+    compiler may reassociate a sum in a loop.)"""
     for i in nrm:
         total = vec3(0.0)
-        for q in range(vf_starts[i], vf_starts[i + 1]):
-            f = faces[vf_items[q]]
+        for q in range(starts[i], starts[i + 1]):
+            f = faces[entries[q] // 3]
             total += (x[f[1]] - x[f[0]]).cross(x[f[2]] - x[f[0]])
         nrm[i] = total
     for i in nrm:
@@ -207,7 +207,7 @@ def layer_normals_gathered(x: V3, faces: I3, vf_starts: I1, vf_items: I1, nrm: V
 # -- the explicit solver's forces ----------------------------------------------------------------
 # kernels.spring_forces and bend_forces add each element's force into its vertices from a
 # parallel loop: summed in thread order. Here each vertex sums the forces of its own elements
-# (CSR lists: solvers._vertex_lists), computing each element once per vertex it has.
+# (CSR lists: solvers._vertex_lists_nd), computing each element once per vertex it has.
 
 
 @ti.kernel

@@ -112,6 +112,13 @@ def _vertex_lists(owner: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.cumsum(ptr).astype(np.int32), np.argsort(owner, kind="stable")
 
 
+def _vertex_lists_nd(owner: np.ndarray, n: int):
+    """_vertex_lists on the device: (starts, entries) for the gathering kernels, each entry an
+    index into `owner` (which the kernel decodes: element and role)."""
+    starts, entries = _vertex_lists(owner, n)
+    return _nd(ti.i32, starts), _nd(ti.i32, entries.astype(np.int32))
+
+
 class _SpringSet:
     def __init__(self, model: ClothModel, select: np.ndarray) -> None:
         self.count = int(select.sum())
@@ -137,6 +144,9 @@ class ClothSolver:
 
     def __init__(self, model: ClothModel, effects: Effects, settings: SolverSettings) -> None:
         init_taichi()
+        # A GPU or several CPU threads: kernels whose serial form is one task or sums in thread
+        # order have parallel forms there (parallel_kernels.py).
+        self.parallel = not serial()
         self.model = model
         self.effects = effects
         self.settings = settings
@@ -264,7 +274,7 @@ class ClothSolver:
         self.s_owner = _nd(ti.i32, model.garment_of_vertex.astype(np.int32))
         self.s_rest = _nd(VEC3, model.rest_x.astype(NP_REAL))
         # Parallel backends push all vertices at once (parallel_kernels.self_collide_parallel).
-        parallel = self.use_self and not serial()
+        parallel = self.use_self and self.parallel
         self.s_push = ti.ndarray(VEC3, self.n if parallel else 1)
         self.s_scan = ti.ndarray(ti.i32, size // PK.SCAN_BLOCK + 2 if parallel else 1)
 
@@ -296,16 +306,11 @@ class ClothSolver:
         # garments' push back on it (kernels.collide_layer_one).
         n_layer = self.n if self.use_layers else 1
         self.layer_nrm = ti.ndarray(VEC3, n_layer)
-        if serial():
-            self.layer_react = ti.ndarray(VEC4, n_layer)
-        else:  # summed in fixed point, and normals gathered per vertex (parallel_kernels)
-            self.layer_react = ti.ndarray(K.REACT_EXACT, n_layer)
-            # Each vertex's inner faces in ascending order (entry // 3 of the flattened faces).
-            vf_starts, vf_items = (_vertex_lists(faces.ravel(), self.n) if self.use_layers
-                                   else (np.zeros(2, np.int32), np.zeros(1, np.int64)))
-            self.layer_vf_starts = _nd(ti.i32, vf_starts)
-            self.layer_vf_items = _nd(ti.i32, (vf_items // 3).astype(np.int32))
+        # Parallel backends sum the pushes in fixed point and gather the normals per vertex.
+        self.layer_react = ti.ndarray(K.REACT_EXACT if self.parallel else VEC4, n_layer)
         self.layer_react.fill(0)
+        if self.parallel and self.use_layers:
+            self.layer_vertex_faces = _vertex_lists_nd(faces.ravel(), self.n)
         self.layer_count = ti.ndarray(REAL, n_layer)  # pushes each took in the last substep
         self.layer_count.fill(0.0)
         self.layer_tri = _nd(ti.i32, -np.ones(self.n, np.int32))
@@ -353,19 +358,19 @@ class ClothSolver:
             c = self.layer_collider
             self._run("garment_collision", c.nearest, self.x, self.layer_w, self.layer_tri, s1,
                       True, self.layer_guard, self.layer_odo + s1 * self.layer_travel)
-            if serial():
+            if self.parallel:
+                self._run("garment_collision", PK.layer_normals_gathered, self.x, c.faces,
+                          *self.layer_vertex_faces, self.layer_nrm)
+            else:
                 self._run("garment_collision", K.layer_normals, self.x, c.faces,
                           self.layer_nrm)
-            else:
-                self._run("garment_collision", PK.layer_normals_gathered, self.x, c.faces,
-                          self.layer_vf_starts, self.layer_vf_items, self.layer_nrm)
             self._run("garment_collision", K.collide_layers, self.x, self.xp, self.w,
                       self.layer_w, self.layer_tri, c.faces, c.fadj, self.layer_nrm,
                       self.thickness, self.friction, self.settings.recover_speed * h,
                       2.0 * c.cell, self.contact_n, self.contact_v, h, self.layer_react,
-                      self.layer_count, self.effects.friction, not serial())
+                      self.layer_count, self.effects.friction, self.parallel)
         if self.use_self:
-            if not serial():
+            if self.parallel:
                 self._run("self_collision", PK.self_collide_parallel, self.x, self.w,
                           self.s_owner, self.s_rest, self.s_counts, self.s_starts, self.s_items,
                           self.s_scan, self.s_push, self.self_inv_cell, self.s_mask,
@@ -498,7 +503,7 @@ class XPBDSolver(ClothSolver):
 
     def __init__(self, model, effects, settings) -> None:
         super().__init__(model, effects, settings)
-        self.gauss_seidel = serial()
+        self.gauss_seidel = not self.parallel
         self._stiff_h: float | None = None
         self.n_stiff_bends = 0
         if self.n_bends:  # each bend's generalised inverse mass (see STIFF_BEND_RATIO)
@@ -870,30 +875,25 @@ class ExplicitSolver(ClothSolver):
         self.f = _nd(VEC3, np.zeros((self.n, 3), NP_REAL))
         # Parallel backends gather each vertex's forces (parallel_kernels): the scatter's
         # float adds come out in thread order, and runs of one input would differ.
-        self.gathered = not serial()
-        if self.gathered:
+        if self.parallel:
             self.set_lists = {}
             for name, s in self.sets.items():
                 ends = s.springs.to_numpy()  # (the kernel reads its length as the count)
-                self.set_lists[name] = self._lists(np.concatenate([ends[:, 0], ends[:, 1]]))
+                self.set_lists[name] = _vertex_lists_nd(ends.T.ravel(), self.n)
             if self.n_bends:
-                self.bend_lists = self._lists(model.bends.ravel())
-
-    def _lists(self, owner: np.ndarray):
-        starts, entries = _vertex_lists(owner, self.n)
-        return _nd(ti.i32, starts), _nd(ti.i32, entries.astype(np.int32))
+                self.bend_lists = _vertex_lists_nd(model.bends.ravel(), self.n)
 
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
         e = self.effects
         for name, s in self.sets.items():
             args = (self.x, self.v, self.f, s.springs, s.rest, s.k_t, s.k_c, s.beta)
-            if self.gathered:
+            if self.parallel:
                 self._run(name, PK.spring_forces_gathered, *args, *self.set_lists[name])
             else:
                 self._run(name, K.spring_forces, *args)
         if self.n_bends:
             args = (self.x, self.v, self.f, self.bends, self.kw, self.bstiff, self.bbeta)
-            if self.gathered:
+            if self.parallel:
                 self._run("bending", PK.bend_forces_gathered, *args, *self.bend_lists)
             else:
                 self._run("bending", K.bend_forces, *args)
