@@ -52,6 +52,9 @@ PROFILE_FRAMES = 5
 # (their cloth and spheres never meet): how a GPU's cost grows with the work in each launch.
 BATCH_FRAMES = 15
 BATCHES = {"cuda": (1, 4, 16, 64), "cpu": (1, 4, 16)}
+# Batches of body-like scenes through datagen.sim.batch: denim tubes on their swinging cylinders,
+# every other one swung the opposite way (each scene a collider of its own in the batch's one).
+TUBE_BATCHES = {"cuda": (1, 4, 16, 64), "cpu": (1, 4)}
 RATE_FRAMES = int(os.environ.get("DATAGEN_BENCH_GPU_FRAMES", "30"))  # a quick check sets fewer
 ERROR_FRAMES = 16
 REF_SUBSTEPS = 160
@@ -78,6 +81,40 @@ def batched_sheets(copies: int, frames: int):
                           FPS)
     return StudyScene("sheet_batch", "cotton", f"{copies}x4k", sheets, track, frames, frames,
                       frames)
+
+
+def tube_batch_rows(arch: str, frames: int) -> list[dict]:
+    """Each batch of TUBE_BATCHES[arch] timed through simulate_batch after a batch of two has
+    compiled the kernels; per batch the rate, each scene's worst strain and depth, and whether
+    any scene had to be simulated alone."""
+    from datagen.sim.batch import BatchScene, simulate_batch
+    from datagen.sim.simulate import ColliderTrack, SimOptions
+    from datagen.study.run import PEER_EFFECTS
+    from datagen.study.scenes import FPS, tube_cylinder
+
+    scene = tube_cylinder("denim", "5k", frames=frames)
+    track = scene.track
+    mirrored = ColliderTrack(track.vertices * np.array([-1.0, 1.0, 1.0]),
+                             track.faces[:, ::-1].copy(), track.face_mask, track.fps)
+    options = SimOptions(solver="xpbd", frames=frames, profile_every=0, settle_seconds=0.0,
+                         strain_refinements=0, effects=PEER_EFFECTS)
+
+    def batch(copies: int):
+        return [BatchScene(scene.garments, mirrored if k % 2 else track) for k in range(copies)]
+
+    simulate_batch(batch(2), options)  # compiles the kernels
+    rows = []
+    for copies in TUBE_BATCHES[arch]:
+        t = time.perf_counter()
+        results = simulate_batch(batch(copies), options)
+        wall = time.perf_counter() - t
+        rows.append({"copies": copies, "vertices": copies * scene.n_vertices,
+                     "s_per_sim_s": wall / (frames / FPS),
+                     "alone": sum(bool(r.report["batch"]["alone"]) for r in results),
+                     "strain_p999_max": max(float(r.qa["strain_p999"].max()) for r in results),
+                     "deep_max": max(float(r.qa["deep_share"].max()) for r in results)})
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
 
 
 def save_scenes(folder: Path) -> None:
@@ -189,8 +226,8 @@ def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
     Taichi's kernel profiler (how much of the wall time the device spends in kernels, and in
     which); `batch`, batched_sheets at each of BATCHES; `serial_limit`, the first case with the
     strain limit after contact in its serial form (one task) instead of coloured sweeps;
-    `hard`, HARD_CASES from `scenes`; `self_collision`, the 5k cotton tube with its own effects
-    and without self-collision; `repeat`, _repeat_rows."""
+    `hard`, HARD_CASES from `scenes`; `batch_tubes`, tube_batch_rows; `self_collision`, the
+    5k cotton tube with its own effects and without self-collision; `repeat`, _repeat_rows."""
     os.environ["DATAGEN_TI_ARCH"] = arch
     profile = mode == "profile"
     if profile:
@@ -246,6 +283,9 @@ def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
                          "finite": bool(np.isfinite(run.positions).all())})
             print(json.dumps(rows[-1]), flush=True)
         out.write_text(json.dumps(rows, indent=1))
+        return
+    if mode == "batch_tubes":
+        out.write_text(json.dumps(tube_batch_rows(arch, BATCH_FRAMES), indent=1))
         return
     if mode == "serial_limit":
         from datagen.sim.solvers import XPBDSolver
@@ -325,6 +365,7 @@ def run_all(out_dir: Path, scenes: Path | None) -> None:
         _both_backends("hard", out_dir, scenes, env)
     _both_backends("self_collision", out_dir, scenes, env)
     _both_backends("batch", out_dir, scenes, env)
+    _both_backends("batch_tubes", out_dir, scenes, env)
     # Alone on the GPU: the serial limit's cost, and the profiled run (the profiler's timing
     # would slow the timed ones).
     for mode in ("serial_limit", "profile"):
@@ -352,6 +393,32 @@ def _reference(row: dict, out_dir: Path) -> tuple[np.ndarray, int]:
         np.savez_compressed(path, ref=ref, horizon=predictable_frames(ref, twin))
     d = np.load(path)
     return d["ref"], int(d["horizon"])
+
+
+def tube_batch_lines(out_dir: Path) -> list[str]:
+    """The table of the `batch_tubes` runs, where the folder has them."""
+    runs = {a: json.loads((out_dir / f"batch_tubes_{a}.json").read_text())
+            for a in ("cuda", "cpu") if (out_dir / f"batch_tubes_{a}.json").exists()}
+    if "cuda" not in runs:
+        return []
+    cpu = {b["copies"]: b for b in runs.get("cpu", [])}
+    lines = [
+        "",
+        f"Batches of body-like scenes (`datagen.sim.batch`): 5k denim tubes on their swinging "
+        f"cylinders, every other one swung the other way, each on its own cell of the batch, "
+        f"{BATCH_FRAMES} frames (the CPU's, on one thread, at the same time):",
+        "",
+        "| scenes | vertices | GPU s/sim-s | GPU s/sim-s per scene | CPU s/sim-s | "
+        "simulated alone | strain p99.9 max | too deep max |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for b in runs["cuda"]:
+        c = cpu.get(b["copies"])
+        on_cpu = f"{c['s_per_sim_s']:.2f}" if c else "-"
+        lines.append(f"| {b['copies']} | {b['vertices']} | {b['s_per_sim_s']:.2f} | "
+                     f"{b['s_per_sim_s'] / b['copies']:.3f} | {on_cpu} | {b['alone']} | "
+                     f"{b['strain_p999_max']:.3f} | {100 * b['deep_max']:.2f} % |")
+    return lines
 
 
 def repeat_lines(rows: list[dict]) -> list[str]:
@@ -448,6 +515,7 @@ def report(out_dir: Path) -> None:
         ratio = f"{cb['s_per_sim_s'] / b['s_per_sim_s']:.2f}x" if cb else "-"
         lines.append(f"| {b['copies']} | {b['vertices']} | {b['s_per_sim_s']:.2f} | {cpu} | "
                      f"{b['s_per_sim_s'] / b['copies']:.3f} | {ratio} |")
+    lines += tube_batch_lines(out_dir)
     hard = {a: load(f"hard_{a}") for a in ("cuda", "cpu")
             if (out_dir / f"hard_{a}.json").exists()}
     if hard:

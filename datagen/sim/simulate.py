@@ -195,18 +195,23 @@ def _fabric_strain(model: ClothModel, x: np.ndarray) -> tuple[np.ndarray, np.nda
     return strain, strain > model.max_strain[fabric_springs]
 
 
-def kinetic_energy(model: ClothModel, v: np.ndarray) -> float:
-    return float(0.5 * np.sum(model.mass * np.sum(v * v, axis=1)))
+def kinetic_energy(model: ClothModel, v: np.ndarray, lo: int = 0, hi: int | None = None) -> float:
+    """Kinetic energy (J) of the vertices lo:hi (all by default)."""
+    v = v[lo:hi]
+    return float(0.5 * np.sum(model.mass[lo:hi] * np.sum(v * v, axis=1)))
 
 
-def elastic_energy(model: ClothModel, x: np.ndarray) -> float:
-    """Energy stored in the springs and bending stencils at positions x (J)."""
-    e = model.springs
-    stretch = np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1) - model.rest_length
-    k = np.where(stretch > 0, model.k_tension, model.k_compression)
-    curvature = np.einsum("bk,bkd->bd", model.bend_weights, x[model.bends])
+def elastic_energy(model: ClothModel, x: np.ndarray, springs: np.ndarray | slice = slice(None),
+                   bends: np.ndarray | slice = slice(None)) -> float:
+    """Energy stored in the springs and bending stencils at positions x (J); `springs` and
+    `bends` select some of them (a part of a batch: _Part)."""
+    e = model.springs[springs]
+    stretch = np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1) - model.rest_length[springs]
+    k = np.where(stretch > 0, model.k_tension[springs], model.k_compression[springs])
+    curvature = np.einsum("bk,bkd->bd", model.bend_weights[bends], x[model.bends[bends]])
     return float(0.5 * np.sum(k * stretch**2)
-                 + 0.5 * np.sum(model.bend_stiffness * np.sum(curvature * curvature, axis=1)))
+                 + 0.5 * np.sum(model.bend_stiffness[bends]
+                                * np.sum(curvature * curvature, axis=1)))
 
 
 def kinetic_energy_bound(ke0: float, mass: float, dt: float, gravity: float,
@@ -219,18 +224,53 @@ def kinetic_energy_bound(ke0: float, mass: float, dt: float, gravity: float,
     return (np.sqrt(ke0) + np.sqrt(0.5 * mass) * (gravity * dt + drive_speed)) ** 2
 
 
-def _qa(model: ClothModel, x: np.ndarray, v: np.ndarray, sd: np.ndarray | None,
+@dataclass
+class _Part:
+    """The vertices of one scene of a batch (datagen.sim.batch), or all of a simulation's: the
+    QA series and the energy guards are computed per part, so a scene in a batch is measured
+    and guarded as if simulated alone. `fabric` selects its springs among _fabric_strain's,
+    `springs` and `bends` among the model's (slices over everything for a whole)."""
+
+    lo: int
+    hi: int
+    fabric: np.ndarray | slice
+    springs: np.ndarray | slice
+    bends: np.ndarray | slice
+    mass: float
+    label: str = ""  # prefixed to a guard's reason ("scene 3: ")
+
+    @staticmethod
+    def whole(model: ClothModel) -> _Part:
+        everything = slice(None)
+        return _Part(0, model.n_vertices, everything, everything, everything,
+                     float(model.mass.sum()))
+
+    @staticmethod
+    def of(model: ClothModel, lo: int, hi: int, label: str) -> _Part:
+        def inside(first_vertex: np.ndarray) -> np.ndarray:
+            return np.flatnonzero((first_vertex >= lo) & (first_vertex < hi))
+
+        fabric = inside(model.springs[model.fabric_springs][:, 0])
+        return _Part(lo, hi, fabric, inside(model.springs[:, 0]), inside(model.bends[:, 0]),
+                     float(model.mass[lo:hi].sum()), label)
+
+    def kinetic_energy(self, model: ClothModel, v: np.ndarray) -> float:
+        return kinetic_energy(model, v, self.lo, self.hi)
+
+
+def _qa(model: ClothModel, part: _Part, v: np.ndarray, sd: np.ndarray | None,
         fabric_strain: tuple[np.ndarray, np.ndarray]) -> dict:
-    strain, over = fabric_strain
+    strain, over = (a[part.fabric] for a in fabric_strain)
     out = {
         "strain_mean": float(np.mean(np.abs(strain))),
         "strain_max": float(strain.max()),
         "strain_p999": float(np.percentile(strain, 99.9)),
         "over_strain_share": float(over.mean()),
-        "kinetic_energy": kinetic_energy(model, v),
+        "kinetic_energy": part.kinetic_energy(model, v),
     }
     if sd is not None:
-        thick = model.thickness
+        thick = model.thickness[part.lo:part.hi]
+        sd = sd[part.lo:part.hi]
         out["inside_share"] = float(np.mean(sd < 0.0))
         out["deep_share"] = float(np.mean(sd < -thick))
     else:
@@ -288,12 +328,20 @@ def body_start_transform(body: BodySequence) -> tuple[np.ndarray, np.ndarray]:
 
 class _Simulation:
     def __init__(self, garments: list[Garment], body: ColliderTrack | None, options: SimOptions,
-                 start: tuple[np.ndarray, np.ndarray] | None = None):
+                 start: tuple[np.ndarray, np.ndarray] | None = None,
+                 parts: list[tuple[int, int]] | None = None):
+        """`parts`: the garment ranges of the scenes of a batch (datagen.sim.batch), each
+        measured and guarded on its own; None: the garments are one scene."""
         self.garments = garments
         self.body = body
         self.options = options
         self.fabrics = [get_fabric(g.fabric, options.fabrics) for g in garments]
         self.model = build_cloth_model(list(zip(garments, self.fabrics, strict=True)))
+        ranges = self.model.garment_ranges
+        self.parts = [_Part.whole(self.model)] if parts is None else [
+            _Part.of(self.model, ranges[g0][0], ranges[g1 - 1][1], f"scene {k}: ")
+            for k, (g0, g1) in enumerate(parts)
+        ]
         if start is not None:
             rot, shift = start
             self.model.x0 = self.model.x0 @ rot.T + shift
@@ -323,10 +371,9 @@ class _Simulation:
         self.refine_rest = 0  # frames left before strain refinement is tried again
         self.last_share = 0.0  # the previous frame's over-strained share (while resting)
         self.frame_substeps: list[int] = []
-        # Positions and kinetic energy where the frame being run starts (_advance): the energy
-        # guard's reference for the frame and its retries.
-        self._frame_start: tuple[np.ndarray, float] | None = None
-        self.cloth_mass = float(self.model.mass.sum())
+        # Positions and each part's kinetic energy where the frame being run starts
+        # (_advance): the energy guard's reference for the frame and its retries.
+        self._frame_start: tuple[np.ndarray, list[float]] | None = None
         # The state last read from a solver, until that solver's state changes: a frame reads
         # it once (its guards) instead of again for the strain check, the output and the
         # next frame's start (each read is a device copy and a float64 conversion).
@@ -413,19 +460,23 @@ class _Simulation:
         limit = self._speed_limit(body_speed)
         if speed > limit:
             return f"runaway velocity {speed:.1f} m/s (limit {limit:.1f})"
-        ke = kinetic_energy(self.model, v)
-        if ke > 0.5 * self.cloth_mass * limit**2 * 0.25:
-            return f"kinetic energy blow-up ({ke:.3g} J)"
-        return self._energy_gain(solver.settings, ke, x, body_speed)
+        for k, part in enumerate(self.parts):
+            ke = part.kinetic_energy(self.model, v)
+            if ke > 0.5 * part.mass * limit**2 * 0.25:
+                return f"{part.label}kinetic energy blow-up ({ke:.3g} J)"
+            reason = self._energy_gain(solver.settings, part, k, ke, x, body_speed)
+            if reason is not None:
+                return reason
+        return None
 
-    def _energy_gain(self, settings: SolverSettings, ke: float, x: np.ndarray,
-                     body_speed: float) -> str | None:
-        """Why the frame just run gave the cloth more kinetic energy than anything in the
-        scene can (ENERGY_SLACK), or None."""
+    def _energy_gain(self, settings: SolverSettings, part: _Part, k: int, ke: float,
+                     x: np.ndarray, body_speed: float) -> str | None:
+        """Why the frame just run gave the cloth of part k more kinetic energy than anything
+        in the scene can (ENERGY_SLACK), or None."""
         if self._frame_start is None:
             return None
-        x0, ke0 = self._frame_start
-        mass = self.cloth_mass
+        x0, ke0 = self._frame_start[0], self._frame_start[1][k]
+        mass = part.mass
         gravity = float(np.linalg.norm(settings.gravity)) if self.effects.gravity else 0.0
         drive = settings.recover_speed + body_speed
         if self.effects.wind and self.options.wind:
@@ -436,13 +487,14 @@ class _Simulation:
             return None
         # Only now the stored energy: a stretched garment snapping back may take its speed
         # from it (two passes over the springs and stencils, rarely needed).
-        released = max(elastic_energy(self.model, x0) - elastic_energy(self.model, x), 0.0)
+        released = max(elastic_energy(self.model, x0, part.springs, part.bends)
+                       - elastic_energy(self.model, x, part.springs, part.bends), 0.0)
         bound += ENERGY_SLACK * released
         if ke <= bound + floor:
             return None
-        return (f"energy gain: kinetic energy {ke0:.3g} -> {ke:.3g} J in one frame, over the "
-                f"{bound + floor:.3g} J that gravity, the collider, wind and {released:.3g} J "
-                f"of released elastic energy can give")
+        return (f"{part.label}energy gain: kinetic energy {ke0:.3g} -> {ke:.3g} J in one frame, "
+                f"over the {bound + floor:.3g} J that gravity, the collider, wind and "
+                f"{released:.3g} J of released elastic energy can give")
 
     def run(self) -> SimResult:
         t_start = time.perf_counter()
@@ -488,7 +540,7 @@ class _Simulation:
         went from 2.5 % of its edges over the bound to 0.06 % at 4x.)"""
         solver = self.solver
         x0, v0 = self._state(solver)
-        self._frame_start = (x0, kinetic_energy(self.model, v0))
+        self._frame_start = (x0, [p.kinetic_energy(self.model, v0) for p in self.parts])
         tracking0 = solver.get_tracking()
         every = self.options.profile_every
         search = step % self.options.search_every == 0
@@ -555,8 +607,10 @@ class _Simulation:
         return self._strain_of[1]
 
     def _over_strain(self, solver) -> float:
+        """The share of fabric edges beyond their bound, in the part that has the most."""
         x, _ = self._state(solver)
-        return float(self._strain(x)[1].mean())
+        over = self._strain(x)[1]
+        return max(float(over[p.fabric].mean()) for p in self.parts)
 
     def _record(self, body_frame: int, outputs, qa_rows) -> None:
         x, v = self._state(self.solver)
@@ -567,7 +621,8 @@ class _Simulation:
             # The collider holds this frame's body as its end position; the solver's vertices
             # track their closest triangles, so no new search is needed.
             sd = self.collider.signed_distance_tracked(self.solver.x, self.solver.tri)
-        qa_rows.append(_qa(self.model, x, v, sd, self._strain(x)))
+        strain = self._strain(x)
+        qa_rows.append([_qa(self.model, p, v, sd, strain) for p in self.parts])
 
     def _result(self, outputs, qa_rows, wall, settle) -> SimResult:
         costs: dict[str, float] = {}
@@ -577,7 +632,12 @@ class _Simulation:
                 costs[k] = costs.get(k, 0.0) + v
             for k, v in s.launches.items():
                 launches[k] = launches.get(k, 0) + v
-        qa = {k: np.array([row[k] for row in qa_rows], dtype=np.float32) for k in qa_rows[0]}
+        # Each part's series (one part unless a batch: datagen.sim.batch reads them all).
+        self.part_qa = [
+            {k: np.array([row[p][k] for row in qa_rows], dtype=np.float32) for k in qa_rows[0][p]}
+            for p in range(len(self.parts))
+        ]
+        qa = self.part_qa[0]
         n_frames = len(qa_rows)
         report = {
             "solver": self.options.solver,

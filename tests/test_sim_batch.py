@@ -1,0 +1,101 @@
+"""Batches: several scenes in one solver (datagen.sim.batch) give each scene what it gets alone."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from datagen.errors import InputError
+from datagen.sim.batch import BatchScene, lay_out, simulate_batch
+from datagen.sim.simulate import ColliderTrack, SimOptions, simulate
+from datagen.study.scenes import sheet_sphere, tube_cylinder
+
+FRAMES = 6
+OPTIONS = SimOptions(solver="xpbd", frames=FRAMES, profile_every=0, settle_seconds=0.0,
+                     effects="auto,-self_collision")
+
+
+def _mirrored(track: ColliderTrack) -> ColliderTrack:
+    """The track reflected in x (the cylinder swings the other way), faces turned to keep
+    their normals outward."""
+    return ColliderTrack(track.vertices * np.array([-1.0, 1.0, 1.0]), track.faces[:, ::-1].copy(),
+                         track.face_mask, track.fps)
+
+
+@pytest.fixture(scope="module")
+def scenes() -> list[BatchScene]:
+    """Three different scenes: a cotton tube, a denim tube swung the other way, a falling sheet
+    (no pins, a static collider)."""
+    cotton = tube_cylinder("cotton", "coarse", frames=FRAMES)
+    denim = tube_cylinder("denim", "coarse", frames=FRAMES)
+    sheet = sheet_sphere("cotton", "coarse", frames=FRAMES)
+    return [BatchScene(cotton.garments, cotton.track),
+            BatchScene(denim.garments, _mirrored(denim.track)),
+            BatchScene(sheet.garments, sheet.track)]
+
+
+def _alone_where_batched(scene: BatchScene, shift: np.ndarray):
+    """The scene simulated alone, moved where the batch puts it."""
+    garments = [replace(g, vertices=g.vertices + shift) for g in scene.garments]
+    track = scene.track
+    return simulate(garments, ColliderTrack(track.vertices + shift, track.faces, track.face_mask,
+                                            track.fps), OPTIONS)
+
+
+def test_each_scene_of_a_batch_is_the_scene_simulated_alone(scenes):
+    """The batch's cells keep the scenes apart, so nothing of one reaches another: each tube is
+    bit for bit the tube simulated alone at the same place, its QA series its own. The sheet,
+    which alone has a collider at rest and no pins, shares the batch's moving collider (once it
+    reaches its sphere, its contact searches run at other substeps): within microns."""
+    results = simulate_batch(scenes, OPTIONS)
+    layout = lay_out(scenes)
+    for a in range(3):  # cells side by side, none overlapping another
+        for b in range(a):
+            apart = (layout.cells[a, 0] >= layout.cells[b, 1] - 1e-9) | (
+                layout.cells[b, 0] >= layout.cells[a, 1] - 1e-9)
+            assert apart.any()
+    for k, (scene, result) in enumerate(zip(scenes, results, strict=True)):
+        assert result.report["batch"] == {"scenes": 3, "index": k, "alone": False,
+                                          "batch_vertices": sum(
+                                              len(g.vertices) for s in scenes
+                                              for g in s.garments)}
+        alone = _alone_where_batched(scene, layout.offsets[k])
+        name = scene.garments[0].name
+        assert result.garment_names == [name]
+        moved_back = (alone.vertices[name] - layout.offsets[k]).astype(np.float32)
+        gap = np.abs(result.vertices[name] - moved_back).max()
+        if k < 2:
+            assert gap == 0.0
+            for series, values in alone.qa.items():
+                np.testing.assert_array_equal(result.qa[series], values, err_msg=series)
+        else:
+            assert gap < 2e-5
+        # Where the scene was given, not where the batch put it: the cloth starts there.
+        np.testing.assert_allclose(result.vertices[name][0], scene.garments[0].vertices,
+                                   atol=1e-6)
+
+
+def test_a_scene_that_leaves_its_cell_has_the_batch_simulated_again_scene_by_scene(scenes):
+    """With cells barely wider than the scenes, the swinging tubes' hems reach past their cells'
+    edges: the batch is not trusted, and every scene is simulated alone, which its report says."""
+    pair = scenes[:2]
+    results = simulate_batch(pair, OPTIONS, margin=0.21)
+    for k, result in enumerate(results):
+        batch = result.report["batch"]
+        assert batch["alone"] and batch["index"] == k
+        assert "left their lattice cells" in batch["why"]
+        alone = simulate(pair[k].garments, pair[k].track, OPTIONS)
+        np.testing.assert_array_equal(result.vertices["tube"], alone.vertices["tube"])
+
+
+def test_scenes_that_cannot_share_a_solver_are_refused_naming_the_scene(scenes):
+    slow = replace(scenes[1].track, fps=25.0)
+    with pytest.raises(InputError, match=r"scenes\[1\]\.track\.fps.*30\.0.*25\.0"):
+        simulate_batch([scenes[0], BatchScene(scenes[1].garments, slow)], OPTIONS)
+    # The tubes (skirt-like) call for self-collision, the sheet does not: one solver cannot run
+    # both, and the effects that act on every vertex must agree.
+    with pytest.raises(InputError, match=r"scenes\[2\] effects.*self_collision"):
+        simulate_batch(scenes, replace(OPTIONS, effects="auto"))
+    with pytest.raises(InputError, match=r"scenes\[0\]\.garments.*unique garment names"):
+        twice = scenes[0].garments * 2
+        simulate_batch([BatchScene(twice, scenes[0].track)], OPTIONS)
