@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from datagen.errors import InputError
+from datagen.errors import InputError, RejectedSequence
 from datagen.sim.batch import BatchScene, lay_out, simulate_batch
 from datagen.sim.simulate import ColliderTrack, SimOptions, simulate
 from datagen.study.scenes import sheet_sphere, tube_cylinder
@@ -99,3 +99,25 @@ def test_scenes_that_cannot_share_a_solver_are_refused_naming_the_scene(scenes):
     with pytest.raises(InputError, match=r"scenes\[0\]\.garments.*unique garment names"):
         twice = scenes[0].garments * 2
         simulate_batch([BatchScene(twice, scenes[0].track)], OPTIONS)
+
+
+def test_each_scene_is_guarded_against_its_own_collider_and_a_bad_one_costs_the_others_time(
+        scenes):
+    """The runaway guards allow a scene's cloth 3x its own collider's fastest speed (or the
+    limit given), and kinetic energy to match (an RMS speed of half that): the sheet over its
+    static sphere is held to 2 m/s, whose kinetic-energy bound its free fall breaks at frame 4
+    (1.3 m/s), while the tube beside it swings with its cylinder (3.3 m/s allowed: against that,
+    as the batch's fastest collider, the sheet would pass these 4 frames). The batch is rejected
+    naming the sheet's scene; simulated alone, the tube passes and the sheet is rejected."""
+    def first_frames(scene: BatchScene) -> BatchScene:
+        track = scene.track
+        return BatchScene(scene.garments, replace(track, vertices=track.vertices[:5]))
+
+    pair = [first_frames(scenes[0]), first_frames(scenes[2])]
+    options = replace(OPTIONS, speed_limit=2.0, frames=4)
+    tube, sheet = simulate_batch(pair, options)
+    assert isinstance(sheet, RejectedSequence) and "kinetic energy blow-up" in sheet.reason
+    assert tube.report["batch"]["alone"]
+    assert "scene 1: kinetic energy blow-up" in tube.report["batch"]["why"]
+    alone = simulate(pair[0].garments, pair[0].track, options)
+    np.testing.assert_array_equal(tube.vertices["tube"], alone.vertices["tube"])

@@ -9,10 +9,10 @@ which some scene's cloth left its cell is not trusted (see below).
 
 What a scene gets is what it would get alone, but for rounding: the same solver, settings and
 effects (scenes whose resolved effects differ are refused), its own QA series and its own energy
-guards (simulate._Part). Shared by the batch: the substeps of a frame that a guard redoes (every
-scene redoes it), the collider's grid and the runaway-speed limit (from the fastest body of
-all). A batch that is rejected, or in which a scene's cloth left its cell, is simulated again
-scene by scene, so one bad scene costs the others only time; each result's report says which.
+guards, its speed limit from its own collider (simulate._Part). Shared by the batch: the
+substeps of a frame that a guard redoes (every scene redoes it) and the collider's grid. A
+batch that is rejected, or in which a scene's cloth left its cell, is simulated again scene by
+scene, so one bad scene costs the others only time; each result's report says which.
 """
 
 from __future__ import annotations
@@ -119,7 +119,7 @@ def _check(scenes: list[BatchScene], options: SimOptions) -> None:
 
 def _joined(scenes: list[BatchScene], layout: BatchLayout):
     """The batch as one scene: garments renamed 'k:name' and shifted, the collider tracks
-    shifted and concatenated; and each scene's range of garments."""
+    shifted and concatenated; and each scene's ranges of garments and collider vertices."""
     garments, parts, verts, faces, masks = [], [], [], [], []
     n_body = 0
     for k, (scene, shift) in enumerate(zip(scenes, layout.offsets, strict=True)):
@@ -128,8 +128,8 @@ def _joined(scenes: list[BatchScene], layout: BatchLayout):
             rest = None if g.rest_vertices is None else g.rest_vertices + shift
             garments.append(replace(g, name=f"{k}:{g.name}", vertices=g.vertices + shift,
                                     rest_vertices=rest))
-        parts.append((start, len(garments)))
         track = scene.track
+        parts.append((start, len(garments), n_body, n_body + track.vertices.shape[1]))
         verts.append(np.asarray(track.vertices, dtype=np.float64) + shift)
         faces.append(np.asarray(track.faces) + n_body)
         masks.append(np.asarray(track.face_mask, dtype=bool))

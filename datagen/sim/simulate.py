@@ -237,6 +237,8 @@ class _Part:
     springs: np.ndarray | slice
     bends: np.ndarray | slice
     mass: float
+    # Its collider's vertices (a scene's body in a batch).
+    body: slice = field(default_factory=lambda: slice(None))
     label: str = ""  # prefixed to a guard's reason ("scene 3: ")
 
     @staticmethod
@@ -246,13 +248,13 @@ class _Part:
                      float(model.mass.sum()))
 
     @staticmethod
-    def of(model: ClothModel, lo: int, hi: int, label: str) -> _Part:
+    def of(model: ClothModel, lo: int, hi: int, body: slice, label: str) -> _Part:
         def inside(first_vertex: np.ndarray) -> np.ndarray:
             return np.flatnonzero((first_vertex >= lo) & (first_vertex < hi))
 
         fabric = inside(model.springs[model.fabric_springs][:, 0])
         return _Part(lo, hi, fabric, inside(model.springs[:, 0]), inside(model.bends[:, 0]),
-                     float(model.mass[lo:hi].sum()), label)
+                     float(model.mass[lo:hi].sum()), body, label)
 
     def kinetic_energy(self, model: ClothModel, v: np.ndarray) -> float:
         return kinetic_energy(model, v, self.lo, self.hi)
@@ -329,9 +331,10 @@ def body_start_transform(body: BodySequence) -> tuple[np.ndarray, np.ndarray]:
 class _Simulation:
     def __init__(self, garments: list[Garment], body: ColliderTrack | None, options: SimOptions,
                  start: tuple[np.ndarray, np.ndarray] | None = None,
-                 parts: list[tuple[int, int]] | None = None):
-        """`parts`: the garment ranges of the scenes of a batch (datagen.sim.batch), each
-        measured and guarded on its own; None: the garments are one scene."""
+                 parts: list[tuple[int, int, int, int]] | None = None):
+        """`parts`: the scenes of a batch (datagen.sim.batch), each measured and guarded on its
+        own: its garments g0:g1 and its collider's vertices b0:b1; None: the garments are one
+        scene."""
         self.garments = garments
         self.body = body
         self.options = options
@@ -339,8 +342,8 @@ class _Simulation:
         self.model = build_cloth_model(list(zip(garments, self.fabrics, strict=True)))
         ranges = self.model.garment_ranges
         self.parts = [_Part.whole(self.model)] if parts is None else [
-            _Part.of(self.model, ranges[g0][0], ranges[g1 - 1][1], f"scene {k}: ")
-            for k, (g0, g1) in enumerate(parts)
+            _Part.of(self.model, ranges[g0][0], ranges[g1 - 1][1], slice(b0, b1), f"scene {k}: ")
+            for k, (g0, g1, b0, b1) in enumerate(parts)
         ]
         if start is not None:
             rot, shift = start
@@ -429,12 +432,13 @@ class _Simulation:
             t1 = self.pins.targets(b[f1].astype(np.float64), self.faces)
             solver.set_pin_targets(t0, t1)
 
-    def _body_speed(self, f0: int, f1: int) -> float:
-        """The body's fastest vertex between two frames (m/s; 0 without a body)."""
+    def _body_speed(self, f0: int, f1: int, vertices: slice = slice(None)) -> float:
+        """The body's fastest vertex between two frames (m/s; 0 without a body), among
+        `vertices` (a scene's body in a batch)."""
         if self.body is None:
             return 0.0
-        return float(np.linalg.norm(self.body.vertices[f1] - self.body.vertices[f0],
-                                    axis=1).max()) * self.fps
+        b = self.body.vertices
+        return float(np.linalg.norm(b[f1, vertices] - b[f0, vertices], axis=1).max()) * self.fps
 
     def _speed_limit(self, body_speed: float) -> float:
         if self.body is None:
@@ -455,12 +459,13 @@ class _Simulation:
         x, v = self._state(solver)
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
             return "non-finite positions"
-        speed = float(np.linalg.norm(v, axis=1).max())
-        body_speed = self._body_speed(f0, f1)
-        limit = self._speed_limit(body_speed)
-        if speed > limit:
-            return f"runaway velocity {speed:.1f} m/s (limit {limit:.1f})"
+        speeds = np.linalg.norm(v, axis=1)
         for k, part in enumerate(self.parts):
+            speed = float(speeds[part.lo:part.hi].max())
+            body_speed = self._body_speed(f0, f1, part.body)
+            limit = self._speed_limit(body_speed)
+            if speed > limit:
+                return f"{part.label}runaway velocity {speed:.1f} m/s (limit {limit:.1f})"
             ke = part.kinetic_energy(self.model, v)
             if ke > 0.5 * part.mass * limit**2 * 0.25:
                 return f"{part.label}kinetic energy blow-up ({ke:.3g} J)"
