@@ -5,7 +5,9 @@ one (a GPU's form of the solver, run on this CPU's threads).
 Usage: python tests/parallel_sweeps.py MODE OUT.npz, MODE one of
   serial    the CPU default (one thread, Gauss-Seidel sweeps in one launch per frame)
   coloured  coloured sweeps on one thread (serial() overridden)
-  threads   coloured sweeps on two threads (DATAGEN_TI_THREADS=2 set by the caller)
+  threads   coloured sweeps on two threads (DATAGEN_TI_THREADS=2 set by the caller), and
+            test_sim_batch's three scenes batched, against each simulated alone where the
+            batch put it
 """
 
 from __future__ import annotations
@@ -50,8 +52,10 @@ def main(mode: str, out: str) -> None:
     explicit = simulate(short.garments, short.track,
                         SimOptions(solver="explicit", substeps=400, iterations=1, frames=4,
                                    settle_seconds=0.0, strain_refinements=0))
+    batch_gaps = _batch_gaps() if mode == "threads" else []
     np.savez(
         out,
+        batch_gaps=batch_gaps,
         explicit=explicit.vertices[short.garments[0].name],
         layers=np.concatenate([layered.vertices["inner"], layered.vertices["outer"]], axis=1),
         layers_faces=inner.faces,
@@ -64,6 +68,26 @@ def main(mode: str, out: str) -> None:
         tube_strain=tube.qa["strain_p999"],
         tube_deep=tube.qa["deep_share"],
     )
+
+
+def _batch_gaps() -> list[float]:
+    """Per scene of test_sim_batch's batch, the largest distance between its batched and its
+    solo run (at the batch's place) in any frame."""
+    from test_sim_batch import OPTIONS, _alone_where_batched, batch_scenes
+
+    from datagen.sim.batch import lay_out, simulate_batch
+
+    scenes = batch_scenes()
+    layout = lay_out(scenes)
+    gaps = []
+    for k, (scene, result) in enumerate(zip(scenes, simulate_batch(scenes, OPTIONS),
+                                            strict=True)):
+        assert not result.report["batch"]["alone"]
+        alone = _alone_where_batched(scene, layout.offsets[k])
+        name = scene.garments[0].name
+        moved_back = (alone.vertices[name] - layout.offsets[k]).astype(np.float32)
+        gaps.append(float(np.abs(result.vertices[name] - moved_back).max()))
+    return gaps
 
 
 if __name__ == "__main__":

@@ -22,16 +22,20 @@ def _mirrored(track: ColliderTrack) -> ColliderTrack:
                          track.face_mask, track.fps)
 
 
-@pytest.fixture(scope="module")
-def scenes() -> list[BatchScene]:
+def batch_scenes() -> list[BatchScene]:
     """Three different scenes: a cotton tube, a denim tube swung the other way, a falling sheet
-    (no pins, a static collider)."""
+    (no pins, a static collider). Also run on two threads by tests/parallel_sweeps.py."""
     cotton = tube_cylinder("cotton", "coarse", frames=FRAMES)
     denim = tube_cylinder("denim", "coarse", frames=FRAMES)
     sheet = sheet_sphere("cotton", "coarse", frames=FRAMES)
     return [BatchScene(cotton.garments, cotton.track),
             BatchScene(denim.garments, _mirrored(denim.track)),
             BatchScene(sheet.garments, sheet.track)]
+
+
+@pytest.fixture(scope="module")
+def scenes() -> list[BatchScene]:
+    return batch_scenes()
 
 
 def _alone_where_batched(scene: BatchScene, shift: np.ndarray):

@@ -710,7 +710,8 @@ def test_coloured_sweeps_on_two_threads_equal_one_thread_and_stay_physical(tmp_p
     bound; the cotton tube on its swinging cylinder stays out of the body and within cotton's
     bound; a second tube over it (garment-garment collision, whose sums on parallel backends
     are order-independent: parallel_kernels) stays outside it; the explicit baseline, whose
-    forces are gathered per vertex there, follows its serial run. The Jacobi sweeps that this
+    forces are gathered per vertex there, follows its serial run; a batch of scenes gives each
+    the solo result. The Jacobi sweeps that this
     path replaced ran the same sheet away (120 m/s at frame 1, after retries)."""
     import os
     import subprocess
@@ -734,6 +735,10 @@ def test_coloured_sweeps_on_two_threads_equal_one_thread_and_stay_physical(tmp_p
     assert runs["threads"]["steps"].tolist() == [40, 8]
     for key in ("sheet", "tube", "layers", "explicit"):
         assert np.array_equal(runs["coloured"][key], runs["threads"][key]), key
+    # A batch on the coloured path (datagen.sim.batch): the greedy colouring of the joined
+    # scenes gives each scene its own colours, so every scene is bit for bit its solo run at the
+    # batch's place (tests/test_sim_batch.py checks the serial path).
+    assert runs["threads"]["batch_gaps"].tolist() == [0.0, 0.0, 0.0]
     # The explicit solver's gathered forces are its scattered ones to rounding: its tube after
     # 4 frames is where the serial run's is (the sweeps' presets do not apply to it).
     gap = np.abs(runs["threads"]["explicit"] - runs["serial"]["explicit"]).max()
