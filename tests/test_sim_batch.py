@@ -125,3 +125,26 @@ def test_each_scene_is_guarded_against_its_own_collider_and_a_bad_one_costs_the_
     assert "scene 1: kinetic energy blow-up" in tube.report["batch"]["why"]
     alone = simulate(pair[0].garments, pair[0].track, options)
     np.testing.assert_array_equal(tube.vertices["tube"], alone.vertices["tube"])
+
+
+@pytest.mark.parametrize("n_cells", [1, 1023, 1024, 1025, 5000])
+def test_the_collider_grids_blocked_prefix_sum_is_the_running_total(n_cells):
+    """The body grid's cell offsets come from a prefix sum in blocks (summed in parallel, the
+    blocks' sums prefixed, the blocks filled in parallel), which a batch's lattice of millions
+    of cells needs on a GPU: the offsets are the running total of the counts at every size
+    around a block's edge, the total last, and the counts are cleared for the next frame."""
+    import taichi as ti
+
+    from datagen.sim import kernels as K
+    from datagen.sim.backend import init_taichi
+
+    init_taichi()
+    counts_np = np.random.default_rng(n_cells).integers(0, 4, n_cells).astype(np.int32)
+    counts_np[: min(n_cells, 1100) // 2] = 0  # a run of empty cells across a block's edge
+    counts, starts = ti.ndarray(ti.i32, n_cells + 3), ti.ndarray(ti.i32, n_cells + 4)
+    counts.from_numpy(np.concatenate([counts_np, [7, 7, 7]]).astype(np.int32))
+    blocks = ti.ndarray(ti.i32, n_cells // K.PREFIX_BLOCK + 2)
+    K.grid_prefix(counts, starts, n_cells, blocks)
+    expected = np.concatenate([[0], np.cumsum(counts_np)])
+    np.testing.assert_array_equal(starts.to_numpy()[: n_cells + 1], expected)
+    np.testing.assert_array_equal(counts.to_numpy(), [0] * n_cells + [7, 7, 7])

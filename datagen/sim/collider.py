@@ -140,6 +140,7 @@ class BodyCollider:
             self._n_cells_alloc = int((n_cells + 1) * 1.5)
             self.counts = ti.ndarray(ti.i32, self._n_cells_alloc)
             self.starts = ti.ndarray(ti.i32, self._n_cells_alloc + 1)
+            self.block_starts = ti.ndarray(ti.i32, self._n_cells_alloc // K.PREFIX_BLOCK + 2)
             self.counts.fill(0)
         self.origin = VEC3(*lo.astype(NP_REAL))
         self.origin_np = lo.astype(np.float64)
@@ -158,7 +159,7 @@ class BodyCollider:
             self.relative_travel,
             self.tbox,
         )
-        K.grid_prefix(self.counts, self.starts, n_cells)
+        K.grid_prefix(self.counts, self.starts, n_cells, self.block_starts)
         total = int(self.starts[n_cells])
         if total > self._items_alloc:
             self._items_alloc = int(total * 1.5) + 16

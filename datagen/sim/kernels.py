@@ -1135,15 +1135,55 @@ def grid_count(
                         ti.atomic_add(counts[(cx * dims[1] + cy) * dims[2] + cz], 1)
 
 
+# Cells per block of the grid's prefix sum: blocks are summed in parallel, their sums prefixed
+# serially, then each block filled in parallel. A serial pass over every cell was cheap for one
+# body on a CPU, but a batch's lattice has millions of cells (datagen.sim.batch), and one GPU
+# thread walking them would take longer than the frame's simulation.
+PREFIX_BLOCK = 1024
+
+
 @ti.kernel
-def grid_prefix(counts: I1, starts: I1, n_cells: ti.i32):
-    """Exclusive prefix sum (serial: one pass over the cells per frame is cheap)."""
+def prefix_block_sums(counts: I1, block_starts: I1, n: ti.i32):
+    """block_starts[b + 1] = the sum of block b's counts (block_starts[0] is left to
+    prefix_blocks)."""
+    for b in range((n + PREFIX_BLOCK - 1) // PREFIX_BLOCK):
+        total = 0
+        for c in range(b * PREFIX_BLOCK, ti.min((b + 1) * PREFIX_BLOCK, n)):
+            total += counts[c]
+        block_starts[b + 1] = total
+
+
+@ti.kernel
+def prefix_blocks(block_starts: I1, n_blocks: ti.i32):
+    """The blocks' sums into their exclusive prefix, in place (serial: a thousandth of the
+    cells)."""
     ti.loop_config(serialize=True)
-    for c in range(n_cells):
-        if c == 0:
-            starts[0] = 0
-        starts[c + 1] = starts[c] + counts[c]
-        counts[c] = 0
+    for b in range(n_blocks):
+        if b == 0:
+            block_starts[0] = 0
+        block_starts[b + 1] += block_starts[b]
+
+
+@ti.kernel
+def prefix_fill(counts: I1, block_starts: I1, starts: I1, n: ti.i32):
+    """Each block's exclusive prefix from its start, and its counts cleared (grid_fill uses
+    them as cursors); starts[n] is the total."""
+    for b in range((n + PREFIX_BLOCK - 1) // PREFIX_BLOCK):
+        run = block_starts[b]
+        for c in range(b * PREFIX_BLOCK, ti.min((b + 1) * PREFIX_BLOCK, n)):
+            starts[c] = run
+            run += counts[c]
+            counts[c] = 0
+    starts[n] = block_starts[(n + PREFIX_BLOCK - 1) // PREFIX_BLOCK]
+
+
+def grid_prefix(counts, starts, n_cells: int, block_starts) -> None:
+    """Exclusive prefix sum of the first n_cells counts into starts (n_cells + 1 entries), the
+    counts cleared; `block_starts` holds at least n_cells / PREFIX_BLOCK + 2 entries."""
+    n_blocks = -(-n_cells // PREFIX_BLOCK)
+    prefix_block_sums(counts, block_starts, n_cells)
+    prefix_blocks(block_starts, n_blocks)
+    prefix_fill(counts, block_starts, starts, n_cells)
 
 
 @ti.kernel
