@@ -25,7 +25,13 @@ import numpy as np
 from datagen.errors import InputError, RejectedSequence
 from datagen.sim.effects import resolve_effects
 from datagen.sim.fabrics import get_fabric
-from datagen.sim.simulate import ColliderTrack, SimOptions, _Simulation, scene_content, simulate
+from datagen.sim.simulate import (
+    ColliderTrack,
+    SimOptions,
+    scene_content,
+    simulate,
+    simulate_parts,
+)
 from datagen.types import Garment, SimResult
 
 # Horizontal room (m) added to the widest scene's box to make a lattice cell: a scene's cloth
@@ -161,8 +167,7 @@ def simulate_batch(scenes: list[BatchScene], options: SimOptions | None = None,
     garments, track, parts = _joined(scenes, layout)
     why = None
     try:
-        sim = _Simulation(garments, track, options, parts=parts)
-        joint = sim.run()
+        joint, part_qa = simulate_parts(garments, track, options, parts)
     except RejectedSequence as error:
         why = f"the batch was rejected ({error})"
     else:
@@ -171,7 +176,7 @@ def simulate_batch(scenes: list[BatchScene], options: SimOptions | None = None,
             why = f"scenes {left} left their lattice cells"
     if why is not None:
         return [_alone(scene, options, k, len(scenes), why) for k, scene in enumerate(scenes)]
-    return [_split(joint, sim.part_qa[k], scene, k, layout.offsets[k], len(scenes))
+    return [_split(joint, part_qa[k], scene, k, layout.offsets[k], len(scenes))
             for k, scene in enumerate(scenes)]
 
 

@@ -694,3 +694,13 @@ def simulate(garments: list[Garment], body: BodySequence | ColliderTrack | None,
         return _Simulation(garments, track_of(body), options or SimOptions(),
                            body_start_transform(body)).run()
     return _Simulation(garments, body, options or SimOptions()).run()
+
+
+def simulate_parts(garments: list[Garment], track: ColliderTrack, options: SimOptions,
+                   parts: list[tuple[int, int, int, int]]) -> tuple[SimResult, list[dict]]:
+    """Simulate garments that form several independent scenes on one collider track (a batch:
+    datagen.sim.batch); `parts` as in _Simulation. Returns the joint result and each part's QA
+    series (the joint result's own `qa` is the first part's)."""
+    simulation = _Simulation(garments, track, options, parts=parts)
+    result = simulation.run()
+    return result, simulation.part_qa
