@@ -73,14 +73,18 @@ def scene_input(scene: StudyScene, quality: int) -> dict:
     )
 
 
-def run_blender(scene: StudyScene, quality: int, timeout: float = 3600.0) -> Run:
+def run_blender(scene: StudyScene, quality: int, timeout: float = 3600.0,
+                threads: int | None = None) -> Run:
+    """The scene in headless Blender at `quality` steps per frame, timed by Blender's own frame
+    times; `threads` sets Blender's thread count (`-t`; None: its default, every core)."""
     exe = blender_executable()
     if exe is None:
         raise RuntimeError("Blender is not installed (apt-get install blender)")
     with tempfile.TemporaryDirectory() as tmp:
         src, dst = Path(tmp) / "in.npz", Path(tmp) / "out.npz"
         np.savez(src, **scene_input(scene, quality))
-        r = subprocess.run([exe, "-b", "--factory-startup", "--python-exit-code", "1",
+        cores = ["-t", str(threads)] if threads else []
+        r = subprocess.run([exe, "-b", *cores, "--factory-startup", "--python-exit-code", "1",
                             "--python", str(SCRIPT), "--", str(src), str(dst)],
                            capture_output=True, text=True, timeout=timeout)
         if r.returncode != 0 or not dst.exists():
