@@ -14,7 +14,9 @@ This project's machines have no GPU, so the benchmark has two halves:
     python -m benchmarks.bench_gpu --report OUT_DIR      # here: errors, docs/benchmarks.md
 
 `--run` starts one process per backend (both at once: the CPU run takes one core of many) and
-writes their figures and trajectories to OUT_DIR. `--repeat` (a call of its own: about four
+writes their figures and trajectories to OUT_DIR, with batches of copies of the 4k sheet
+(`batch`) and of 5k denim tubes through datagen.sim.batch (`batch_tubes`: what a batch of
+scenes with moving colliders costs). `--repeat` (a call of its own: about four
 minutes on an H100) simulates the 4k sheet and the saved hard cases twice each on the GPU from
 the same input and compares the trajectories frame by frame: the same seed must give the same
 data there too. `--report` measures each trajectory against
