@@ -90,14 +90,13 @@ def tube_batch_rows(arch: str, frames: int) -> list[dict]:
     compiled the kernels; per batch the rate, each scene's worst strain and depth, and whether
     any scene had to be simulated alone."""
     from datagen.sim.batch import BatchScene, simulate_batch
-    from datagen.sim.simulate import ColliderTrack, SimOptions
+    from datagen.sim.simulate import SimOptions
     from datagen.study.run import PEER_EFFECTS
-    from datagen.study.scenes import FPS, tube_cylinder
+    from datagen.study.scenes import FPS, mirrored_track, tube_cylinder
 
     scene = tube_cylinder("denim", "5k", frames=frames)
     track = scene.track
-    mirrored = ColliderTrack(track.vertices * np.array([-1.0, 1.0, 1.0]),
-                             track.faces[:, ::-1].copy(), track.face_mask, track.fps)
+    mirrored = mirrored_track(track)
     options = SimOptions(solver="xpbd", frames=frames, profile_every=0, settle_seconds=0.0,
                          strain_refinements=0, effects=PEER_EFFECTS)
 

@@ -73,21 +73,11 @@ def main(mode: str, out: str) -> None:
 def _batch_gaps() -> list[float]:
     """Per scene of test_sim_batch's batch, the largest distance between its batched and its
     solo run (at the batch's place) in any frame."""
-    from test_sim_batch import OPTIONS, _alone_where_batched, batch_scenes
+    from test_sim_batch import batch_scenes, batched_against_alone
 
-    from datagen.sim.batch import lay_out, simulate_batch
-
-    scenes = batch_scenes()
-    layout = lay_out(scenes)
-    gaps = []
-    for k, (scene, result) in enumerate(zip(scenes, simulate_batch(scenes, OPTIONS),
-                                            strict=True)):
-        assert not result.report["batch"]["alone"]
-        alone = _alone_where_batched(scene, layout.offsets[k])
-        name = scene.garments[0].name
-        moved_back = (alone.vertices[name] - layout.offsets[k]).astype(np.float32)
-        gaps.append(float(np.abs(result.vertices[name] - moved_back).max()))
-    return gaps
+    rows = batched_against_alone(batch_scenes())
+    assert not any(result.report["batch"]["alone"] for result, _, _ in rows)
+    return [gap for _, _, gap in rows]
 
 
 if __name__ == "__main__":

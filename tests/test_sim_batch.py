@@ -7,19 +7,12 @@ import pytest
 
 from datagen.errors import InputError, RejectedSequence
 from datagen.sim.batch import BatchScene, lay_out, simulate_batch
-from datagen.sim.simulate import ColliderTrack, SimOptions, simulate
-from datagen.study.scenes import sheet_sphere, tube_cylinder
+from datagen.sim.simulate import SimOptions, simulate
+from datagen.study.scenes import mirrored_track, sheet_sphere, tube_cylinder
 
 FRAMES = 6
 OPTIONS = SimOptions(solver="xpbd", frames=FRAMES, profile_every=0, settle_seconds=0.0,
                      effects="auto,-self_collision")
-
-
-def _mirrored(track: ColliderTrack) -> ColliderTrack:
-    """The track reflected in x (the cylinder swings the other way), faces turned to keep
-    their normals outward."""
-    return ColliderTrack(track.vertices * np.array([-1.0, 1.0, 1.0]), track.faces[:, ::-1].copy(),
-                         track.face_mask, track.fps)
 
 
 def batch_scenes() -> list[BatchScene]:
@@ -29,7 +22,7 @@ def batch_scenes() -> list[BatchScene]:
     denim = tube_cylinder("denim", "coarse", frames=FRAMES)
     sheet = sheet_sphere("cotton", "coarse", frames=FRAMES)
     return [BatchScene(cotton.garments, cotton.track),
-            BatchScene(denim.garments, _mirrored(denim.track)),
+            BatchScene(denim.garments, mirrored_track(denim.track)),
             BatchScene(sheet.garments, sheet.track)]
 
 
@@ -38,12 +31,21 @@ def scenes() -> list[BatchScene]:
     return batch_scenes()
 
 
-def _alone_where_batched(scene: BatchScene, shift: np.ndarray):
-    """The scene simulated alone, moved where the batch puts it."""
-    garments = [replace(g, vertices=g.vertices + shift) for g in scene.garments]
-    track = scene.track
-    return simulate(garments, ColliderTrack(track.vertices + shift, track.faces, track.face_mask,
-                                            track.fps), OPTIONS)
+def batched_against_alone(scenes: list[BatchScene]) -> list[tuple]:
+    """Per scene: its result in the batch, its run alone moved where the batch puts it, and the
+    largest distance between the two (moved back) in any frame. Also run on two threads by
+    tests/parallel_sweeps.py."""
+    layout = lay_out(scenes)
+    rows = []
+    for scene, result, shift in zip(scenes, simulate_batch(scenes, OPTIONS), layout.offsets,
+                                    strict=True):
+        garments = [replace(g, vertices=g.vertices + shift) for g in scene.garments]
+        alone = simulate(garments, replace(scene.track, vertices=scene.track.vertices + shift),
+                         OPTIONS)
+        name = scene.garments[0].name
+        moved_back = (alone.vertices[name] - shift).astype(np.float32)
+        rows.append((result, alone, float(np.abs(result.vertices[name] - moved_back).max())))
+    return rows
 
 
 def test_each_scene_of_a_batch_is_the_scene_simulated_alone(scenes):
@@ -51,23 +53,20 @@ def test_each_scene_of_a_batch_is_the_scene_simulated_alone(scenes):
     bit for bit the tube simulated alone at the same place, its QA series its own. The sheet,
     which alone has a collider at rest and no pins, shares the batch's moving collider (once it
     reaches its sphere, its contact searches run at other substeps): within microns."""
-    results = simulate_batch(scenes, OPTIONS)
     layout = lay_out(scenes)
     for a in range(3):  # cells side by side, none overlapping another
         for b in range(a):
             apart = (layout.cells[a, 0] >= layout.cells[b, 1] - 1e-9) | (
                 layout.cells[b, 0] >= layout.cells[a, 1] - 1e-9)
             assert apart.any()
-    for k, (scene, result) in enumerate(zip(scenes, results, strict=True)):
+    rows = batched_against_alone(scenes)
+    for k, (scene, (result, alone, gap)) in enumerate(zip(scenes, rows, strict=True)):
         assert result.report["batch"] == {"scenes": 3, "index": k, "alone": False,
                                           "batch_vertices": sum(
                                               len(g.vertices) for s in scenes
                                               for g in s.garments)}
-        alone = _alone_where_batched(scene, layout.offsets[k])
         name = scene.garments[0].name
         assert result.garment_names == [name]
-        moved_back = (alone.vertices[name] - layout.offsets[k]).astype(np.float32)
-        gap = np.abs(result.vertices[name] - moved_back).max()
         if k < 2:
             assert gap == 0.0
             for series, values in alone.qa.items():

@@ -62,6 +62,13 @@ def _rz(angle: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def mirrored_track(track: ColliderTrack) -> ColliderTrack:
+    """The track reflected in x (a swinging collider swings the other way), its faces turned to
+    keep their normals outward: a second scene unlike the first for batches."""
+    return ColliderTrack(track.vertices * np.array([-1.0, 1.0, 1.0]), track.faces[:, ::-1].copy(),
+                         track.face_mask, track.fps, track.lead_in_frames)
+
+
 def tube_cylinder(fabric: str, resolution: str = "5k",
                   frames: int = SCENE_FRAMES["tube_cylinder"]) -> StudyScene:
     """A skirt-like tube hanging from a swinging, twisting cylinder (its top ring pinned)."""
