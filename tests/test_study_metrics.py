@@ -476,8 +476,9 @@ def test_equal_error_speed_pairs_each_blender_run_with_our_cheapest_as_close():
 
 
 def test_a_regenerated_page_keeps_the_hand_written_state_of_the_study(tmp_path):
-    """The reading that rows cannot give lives in OUT/state.md and survives --report-only."""
-    from datagen.study.report import STATE_NOTE
+    """The reading that rows cannot give lives in OUT/state.md (first) and OUT/history.md
+    (last) and survives --report-only."""
+    from datagen.study.report import HISTORY_NOTE, STATE_NOTE
     from datagen.study.sweep import main_cli
 
     _one_finished_part(tmp_path)
@@ -490,4 +491,13 @@ def test_a_regenerated_page_keeps_the_hand_written_state_of_the_study(tmp_path):
              measure=False)
     page = doc.read_text()
     assert page.index("not measured yet") < page.index("**State of the study.** Measured by hand.")
+    assert page.index("Measured by hand.") < page.index("## The scenes")
+    assert "How the study got here" not in page
+    # The log of earlier measurements comes last, after every table, under its own heading.
+    (tmp_path / HISTORY_NOTE).write_text("**Measured once (first session).** Long ago.\n")
+    main_cli(str(tmp_path), quick=False, blender=False, doc=str(doc), command="test",
+             measure=False)
+    page = doc.read_text()
+    assert page.index("## The table") < page.index("## How the study got here")
+    assert page.rstrip().endswith("**Measured once (first session).** Long ago.")
     assert page.index("Measured by hand.") < page.index("## The scenes")

@@ -1,9 +1,11 @@
 """docs/accuracy-vs-time.md from a study's rows and summary: the reference's convergence, the
 table, the plot, the presets with their figures, and Blender's series beside ours.
 
-The reading that rows cannot give (which parts were measured when, what changed since, leads
-found outside the table) is written by hand in OUT/state.md (STATE_NOTE) and placed before the
-scenes, so that a regenerated page keeps it."""
+The reading that rows cannot give is written by hand, so that a regenerated page keeps it: the
+study's present state (which parts stand for today's simulator, what the figures say) in
+OUT/state.md (STATE_NOTE), placed before the scenes; how it got there (each re-measurement and
+what changed before it, leads found outside the table) in OUT/history.md (HISTORY_NOTE), placed
+last, so that a reader meets the results before the log."""
 
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from datagen.study.scenes import START_SUBSTEPS
 from datagen.study.sweep import CHAOS_MM, CONVERGED_MM, TWIN_METRES, Row, pareto
 
 STATE_NOTE = "state.md"
+HISTORY_NOTE = "history.md"
 
 
 def _fmt(x: float, digits: int = 2) -> str:
@@ -379,4 +382,9 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
             lines += ["", "At equal error, whatever the presets: for each Blender run, our "
                       "fastest xpbd run on the same mesh that is at least as close to its own "
                       "reference.", "", *table]
+    if (out / HISTORY_NOTE).is_file():
+        lines += ["", "## How the study got here", "",
+                  "Each re-measurement, newest first, with what changed in the simulator before "
+                  "it; figures quoted here are those of their day, the tables above are "
+                  "today's.", "", (out / HISTORY_NOTE).read_text().strip("\n")]
     doc.write_text("\n".join(lines) + "\n")
