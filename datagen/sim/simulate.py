@@ -44,6 +44,15 @@ PARALLEL_QUALITY_PRESETS: dict[str, dict[str, tuple[int, int]]] = {
 # more sweeps of the limit after contact, passes 15 of the 16 full hard cases instead of 12;
 # 1.8 gains little more at 20x4, loses at 40x4 and raises the skirt's strain (docs/simulator.md).
 OVER_RELAXATION: dict[str, float] = {"xpbd": 1.6}
+# ...but not a single sweep per substep. Over-relaxation maps the most local modes of stiff
+# springs (those a plain sweep settles at once) to -(sor - 1) times themselves, and the
+# corrections become velocity: with one sweep such a mode grows by a + sqrt(a^2 + a) a substep,
+# a = sor - 1, which passes 1 at a = 1/3. At 1.6 a 10k cotton sheet at rest without gravity blew
+# up within 5 frames at 10x1, and one falling freely was torn in its plane by 39 mm in 6 frames
+# at 20x1. With k sweeps the factor is (1 - sor)^k: 0.36 in size at two (positive for these
+# modes; other modes' phases could grow by 1.06 a substep, none measured at 10x2 to 40x2) and
+# 0.13 at the default's four (docs/simulator.md, "Over-relaxation").
+SINGLE_SWEEP_SOR = 1.0
 # A sequence simulated again one preset up (SimOptions.escalated) sweeps without
 # over-relaxation: the 1.6 that pays at 20x4 runs the fast kick's trousers away at 40x8 (88 m/s
 # at frame 26), where plain sweeps pass it (docs/simulator.md, "Escalation").
@@ -123,7 +132,13 @@ class SimOptions:
         return f"{self.quality} {sub}x{it}, sor {self.resolve_sor():g}"
 
     def resolve_sor(self) -> float:
-        sor = OVER_RELAXATION.get(self.solver, 1.0) if self.sor is None else self.sor
+        """The caller's over-relaxation, else the solver's, which a single sweep per substep
+        does without (SINGLE_SWEEP_SOR)."""
+        sor = self.sor
+        if sor is None:
+            sor = OVER_RELAXATION.get(self.solver, 1.0)
+            if self.solver in OVER_RELAXATION and self.resolve_steps()[1] == 1:
+                sor = SINGLE_SWEEP_SOR
         if not 0.0 < sor < 2.0:  # successive over-relaxation diverges outside (0, 2)
             raise InputError(None, "sor", "an over-relaxation factor in (0, 2)", sor)
         return sor
