@@ -1412,7 +1412,8 @@ Q_N_SUB, Q_N_ITER, Q_SWEEP0, Q_N_SETS, Q_N_BENDS, Q_N_PINS, Q_S_MASK = range(7)
 Q_DIMS, Q_L_DIMS = 7, 10  # 3 values each
 Q_N_TETHERS = 13
 Q_N_STIFF_BENDS = 14
-Q_SIZE = 15
+Q_PLAIN_REVERSE = 15  # 1: reverse sweeps are not over-relaxed (SolverSettings)
+Q_SIZE = 16
 
 
 @ti.kernel
@@ -1553,6 +1554,7 @@ def xpbd_frame(
     n_stiff = Q[Q_N_STIFF_BENDS]
     n_pins = Q[Q_N_PINS]
     n_tethers = Q[Q_N_TETHERS]
+    plain_reverse = Q[Q_PLAIN_REVERSE]
     s_mask = Q[Q_S_MASK]
     dims = ti.math.ivec3(Q[Q_DIMS], Q[Q_DIMS + 1], Q[Q_DIMS + 2])
     l_dims = ti.math.ivec3(Q[Q_L_DIMS], Q[Q_L_DIMS + 1], Q[Q_L_DIMS + 2])
@@ -1573,6 +1575,9 @@ def xpbd_frame(
             lam_b[b] = vec3(0.0)
         for it in range(n_iter):
             reverse = (sweep0 + k * n_iter + it) % 2
+            omega_s = omega  # this sweep's over-relaxation (see SolverSettings.plain_reverse)
+            if plain_reverse != 0 and reverse != 0:
+                omega_s = 1.0
             # Bending before the springs: every bend in the first sweep, the stiff ones in every
             # sweep (see XPBDSolver.substep).
             nb = n_bends
@@ -1581,7 +1586,7 @@ def xpbd_frame(
             # The stiff bends' later sweeps are plain Gauss-Seidel: over-relaxed, their damping
             # (which reads the earlier sweeps' displacement as velocity) ran the fast kick's
             # trousers away (83 m/s at frame 35).
-            omega_b = omega
+            omega_b = omega_s
             if it > 0:
                 omega_b = 1.0
             for m in range(nb):
@@ -1597,7 +1602,7 @@ def xpbd_frame(
                     if reverse != 0:
                         e = hi - 1 - m
                     spring_gs_one(
-                        e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, h, omega
+                        e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, h, omega_s
                     )
         # After the sweeps: what they left beyond a tether goes back onto it before contact.
         for t in range(n_tethers):

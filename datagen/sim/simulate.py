@@ -44,15 +44,18 @@ PARALLEL_QUALITY_PRESETS: dict[str, dict[str, tuple[int, int]]] = {
 # more sweeps of the limit after contact, passes 15 of the 16 full hard cases instead of 12;
 # 1.8 gains little more at 20x4, loses at 40x4 and raises the skirt's strain (docs/simulator.md).
 OVER_RELAXATION: dict[str, float] = {"xpbd": 1.6}
-# ...but not a single sweep per substep. Over-relaxation maps the most local modes of stiff
-# springs (those a plain sweep settles at once) to -(sor - 1) times themselves, and the
-# corrections become velocity: with one sweep such a mode grows by a + sqrt(a^2 + a) a substep,
-# a = sor - 1, which passes 1 at a = 1/3. At 1.6 a 10k cotton sheet at rest without gravity blew
-# up within 5 frames at 10x1, and one falling freely was torn in its plane by 39 mm in 6 frames
-# at 20x1. With k sweeps the factor is (1 - sor)^k: 0.36 in size at two (positive for these
-# modes; other modes' phases could grow by 1.06 a substep, none measured at 10x2 to 40x2) and
-# 0.13 at the default's four (docs/simulator.md, "Over-relaxation").
-SINGLE_SWEEP_SOR = 1.0
+# ...but not in every sweep where a substep has only one. Over-relaxation maps the most local
+# modes of stiff springs (those a plain sweep settles at once) to -(sor - 1) times themselves,
+# and the corrections become velocity: with one sweep such a mode grows by a + sqrt(a^2 + a) a
+# substep, a = sor - 1, which passes 1 at a = 1/3. At 1.6 a 10k cotton sheet at rest without
+# gravity blew up within 5 frames at 10x1, and one falling freely was torn in its plane by 39 mm
+# in 6 frames at 20x1. With k sweeps the factor is (1 - sor)^k: 0.36 in size at two (positive
+# for these modes; other modes' phases could grow by 1.06 a substep, none measured at 10x2 to
+# 40x2) and 0.13 at the default's four (docs/simulator.md, "Over-relaxation"). So with one
+# sweep per substep every other sweep is plain (SolverSettings.plain_reverse): the plain one
+# settles what the over-relaxed one flipped, and the rest keeps most of the gain (walking
+# cotton t-shirt at 40x1: 18.1 mm from its reference, 28.0 with every sweep plain, 11.2 with
+# every sweep over-relaxed).
 # A sequence simulated again one preset up (SimOptions.escalated) sweeps without
 # over-relaxation: the 1.6 that pays at 20x4 runs the fast kick's trousers away at 40x8 (88 m/s
 # at frame 26), where plain sweeps pass it (docs/simulator.md, "Escalation").
@@ -129,16 +132,21 @@ class SimOptions:
     def steps_label(self) -> str:
         """'default 20x4, sor 1.6': the settings a run of these options used, in words."""
         sub, it = self.resolve_steps()
-        return f"{self.quality} {sub}x{it}, sor {self.resolve_sor():g}"
+        alternate = ", every other sweep plain" if self.plain_reverse_sweeps() else ""
+        return f"{self.quality} {sub}x{it}, sor {self.resolve_sor():g}{alternate}"
+
+    def plain_reverse_sweeps(self) -> bool:
+        """Whether sweeps in reverse order are plain: with the solver's own over-relaxation
+        and one sweep per substep, where over-relaxing every sweep grows float rounding into a
+        tear (OVER_RELAXATION). A caller's `sor` applies to every sweep."""
+        return (self.sor is None and self.solver in OVER_RELAXATION
+                and self.resolve_steps()[1] == 1)
 
     def resolve_sor(self) -> float:
-        """The caller's over-relaxation, else the solver's, which a single sweep per substep
-        does without (SINGLE_SWEEP_SOR)."""
+        """The caller's over-relaxation, else the solver's."""
         sor = self.sor
         if sor is None:
             sor = OVER_RELAXATION.get(self.solver, 1.0)
-            if self.solver in OVER_RELAXATION and self.resolve_steps()[1] == 1:
-                sor = SINGLE_SWEEP_SOR
         if not 0.0 < sor < 2.0:  # successive over-relaxation diverges outside (0, 2)
             raise InputError(None, "sor", "an over-relaxation factor in (0, 2)", sor)
         return sor
@@ -367,6 +375,7 @@ class _Simulation:
         self.effects: Effects = resolve_effects(options.effects, content)
         self.substeps, self.iterations = options.resolve_steps()
         self.sor = options.resolve_sor()
+        self.plain_reverse = options.plain_reverse_sweeps()
         self.fps = body.fps if body is not None else 30.0
         if body is not None:
             self.faces = np.asarray(body.faces)
@@ -426,6 +435,7 @@ class _Simulation:
             substeps=substeps,
             iterations=self.iterations,
             sor=self.sor,
+            plain_reverse=self.plain_reverse,
             tolerance=self.options.tolerance,
             cg_tolerance=self.options.cg_tolerance,
             cg_max_iterations=self.options.cg_max_iterations,
@@ -665,6 +675,7 @@ class _Simulation:
             "substeps": self.substeps,
             "iterations": self.iterations,
             "sor": self.sor,
+            "sor_plain_reverse": self.plain_reverse,
             "effects": self.effects.enabled(),
             "effect_costs_s": _effect_costs(costs),
             "kernel_launches": launches,

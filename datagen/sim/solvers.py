@@ -49,6 +49,10 @@ class SolverSettings:
     wind: tuple[float, float, float] = (0.0, 0.0, 0.0)
     recover_speed: float = 0.3  # m/s: how fast a penetrating vertex is moved out
     sor: float = 1.0  # over-relaxation of Gauss-Seidel sweeps
+    # xpbd: sweeps in reverse order are plain. With one sweep per substep the direction
+    # alternates every substep, so over-relaxed and plain sweeps alternate: a plain sweep
+    # settles the local modes that over-relaxation flips (docs/simulator.md).
+    plain_reverse: bool = False
     tolerance: float = 1e-5  # implicit: Newton stops when the update is below this (m)
     cg_tolerance: float = 1e-4  # implicit: relative residual of each CG solve
     cg_max_iterations: int = 200
@@ -703,6 +707,7 @@ class XPBDSolver(ClothSolver):
         Q[K.Q_N_SETS] = self.f_nsets
         Q[K.Q_N_BENDS] = self.n_bends
         Q[K.Q_N_STIFF_BENDS] = self.n_stiff_bends
+        Q[K.Q_PLAIN_REVERSE] = int(self.settings.plain_reverse)
         Q[K.Q_N_PINS] = self.n_pins
         Q[K.Q_N_TETHERS] = self.n_tethers
         Q[K.Q_S_MASK] = self.s_mask
@@ -791,6 +796,7 @@ class XPBDSolver(ClothSolver):
         for it in range(self.settings.iterations):
             reverse = self._sweep % 2
             self._sweep += 1
+            sor = self._sweep_sor(reverse)
             # Most bending is soft: one sweep per substep converges it, and the further
             # iterations go to the stiff stretch and shear springs (as in the fused kernel);
             # bends stiff at this step (STIFF_BEND_RATIO: denim, leather) are swept every time.
@@ -800,8 +806,7 @@ class XPBDSolver(ClothSolver):
             if self.gauss_seidel:
                 if self.n_bends and it == 0:
                     self._run("bending", K.bends_gauss_seidel, *self._bend_args(),
-                              self.stiff_bends, self.n_stiff_bends, h, reverse,
-                              self.settings.sor, False)
+                              self.stiff_bends, self.n_stiff_bends, h, reverse, sor, False)
                 elif self.n_stiff_bends:
                     # Not over-relaxed (see the fused kernel).
                     self._run("bending", K.bends_gauss_seidel, *self._bend_args(),
@@ -822,10 +827,10 @@ class XPBDSolver(ClothSolver):
                         s.lam,
                         h,
                         reverse,
-                        self.settings.sor,
+                        sor,
                     )
             else:
-                self._coloured_iteration(h, it, reverse)
+                self._coloured_iteration(h, it, reverse, sor)
         if self.n_tethers:  # after the sweeps, as in the fused kernel
             self._run("pins", K.apply_tethers, self.x, self.tethers, self.tether_len)
         self._collide(collider, s0, s1, h)
@@ -848,10 +853,14 @@ class XPBDSolver(ClothSolver):
         damping, multipliers), shared by the serial and the coloured sweeps."""
         return (self.x, self.xp, self.w, self.bends, self.kw, self.bcomp, self.bbeta, self.lam_b)
 
-    def _coloured_iteration(self, h: float, it: int, reverse: int) -> None:
+    def _sweep_sor(self, reverse: int) -> float:
+        """The over-relaxation of a sweep in this direction (SolverSettings.plain_reverse)."""
+        return 1.0 if self.settings.plain_reverse and reverse else self.settings.sor
+
+    def _coloured_iteration(self, h: float, it: int, reverse: int, sor: float) -> None:
         """The Gauss-Seidel branch's sweeps of one iteration on a parallel backend: the same
-        order of effects and the same over-relaxation, each colour one parallel loop."""
-        sor = self.settings.sor
+        order of effects and the same over-relaxation (`sor`, this sweep's), each colour one
+        parallel loop."""
         bends = None
         if self.n_bends and it == 0:
             bends, omega = self.bend_colours, sor
