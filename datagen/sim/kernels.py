@@ -1407,13 +1407,13 @@ P_GRAVITY, P_WIND, P_ORIGIN, P_L_ORIGIN = 6, 9, 12, 15  # 3 values each
 P_S_INV_CELL, P_S_RADIUS, P_S_MIN_REST, P_L_INV_CELL, P_L_CELL, P_TRAVEL = range(18, 24)
 P_L_ODO, P_L_TRAVEL, P_TAG, P_L_TAG = 24, 25, 26, 27
 P_SHIFT, P_L_SHIFT = 28, 31  # 3 values each
-P_SIZE = 34
+P_OMEGA_REVERSE = 34  # the reverse sweeps' over-relaxation (XPBDSolver._sweep_sor)
+P_SIZE = 35
 Q_N_SUB, Q_N_ITER, Q_SWEEP0, Q_N_SETS, Q_N_BENDS, Q_N_PINS, Q_S_MASK = range(7)
 Q_DIMS, Q_L_DIMS = 7, 10  # 3 values each
 Q_N_TETHERS = 13
 Q_N_STIFF_BENDS = 14
-Q_PLAIN_REVERSE = 15  # 1: reverse sweeps are not over-relaxed (SolverSettings)
-Q_SIZE = 16
+Q_SIZE = 15
 
 
 @ti.kernel
@@ -1526,6 +1526,7 @@ def xpbd_frame(
     new array has to share one with another (as `adj` and `lists` pack several)."""
     h = P[P_H]
     omega = P[P_OMEGA]
+    omega_reverse = P[P_OMEGA_REVERSE]
     recover = P[P_RECOVER]
     odo0 = P[P_ODO]
     body_travel = P[P_TRAVEL]
@@ -1554,7 +1555,6 @@ def xpbd_frame(
     n_stiff = Q[Q_N_STIFF_BENDS]
     n_pins = Q[Q_N_PINS]
     n_tethers = Q[Q_N_TETHERS]
-    plain_reverse = Q[Q_PLAIN_REVERSE]
     s_mask = Q[Q_S_MASK]
     dims = ti.math.ivec3(Q[Q_DIMS], Q[Q_DIMS + 1], Q[Q_DIMS + 2])
     l_dims = ti.math.ivec3(Q[Q_L_DIMS], Q[Q_L_DIMS + 1], Q[Q_L_DIMS + 2])
@@ -1575,9 +1575,9 @@ def xpbd_frame(
             lam_b[b] = vec3(0.0)
         for it in range(n_iter):
             reverse = (sweep0 + k * n_iter + it) % 2
-            omega_s = omega  # this sweep's over-relaxation (see SolverSettings.plain_reverse)
-            if plain_reverse != 0 and reverse != 0:
-                omega_s = 1.0
+            omega_s = omega  # this sweep's over-relaxation, by direction
+            if reverse != 0:
+                omega_s = omega_reverse
             # Bending before the springs: every bend in the first sweep, the stiff ones in every
             # sweep (see XPBDSolver.substep).
             nb = n_bends

@@ -678,7 +678,8 @@ class XPBDSolver(ClothSolver):
         t = time.perf_counter()
         P = np.zeros(K.P_SIZE, NP_REAL)
         P[K.P_H] = h
-        P[K.P_OMEGA] = self.settings.sor
+        P[K.P_OMEGA] = self._sweep_sor(0)
+        P[K.P_OMEGA_REVERSE] = self._sweep_sor(1)
         P[K.P_RECOVER] = self.settings.recover_speed * h
         travel = c.max_speed if use_collision else 0.0
         P[K.P_ODO] = self.odo
@@ -707,7 +708,6 @@ class XPBDSolver(ClothSolver):
         Q[K.Q_N_SETS] = self.f_nsets
         Q[K.Q_N_BENDS] = self.n_bends
         Q[K.Q_N_STIFF_BENDS] = self.n_stiff_bends
-        Q[K.Q_PLAIN_REVERSE] = int(self.settings.plain_reverse)
         Q[K.Q_N_PINS] = self.n_pins
         Q[K.Q_N_TETHERS] = self.n_tethers
         Q[K.Q_S_MASK] = self.s_mask
