@@ -479,8 +479,9 @@ def batch_against_blender(out_dir: Path, batches: dict) -> list[dict]:
     date, blender = blender_rows()
     tubes = {a: json.loads((out_dir / f"batch_tubes_{a}.json").read_text())
              for a in ("cuda", "cpu") if (out_dir / f"batch_tubes_{a}.json").exists()}
+
     def sheets(arch: str, res: str) -> list[dict]:
-        return [b for b in batches[arch] if b.get("res", "4k") == res]
+        return [b for b in batches[arch] if b["res"] == res]
 
     groups = [(("sheet_sphere", "cotton", res), sheets("cuda", res), sheets("cpu", res))
               for res in ("4k", "10k")]
@@ -497,10 +498,11 @@ def batch_against_blender(out_dir: Path, batches: dict) -> list[dict]:
         key = f"{name}_{fabric}_{res}"
         error = float("nan")
         npz = out_dir / ("batch_tubes_cuda.npz" if name == "tube_cylinder" else "batch_cuda.npz")
-        if npz.exists() and key in np.load(npz):
+        first = np.load(npz) if npz.exists() else {}
+        if key in first:
             ref, h = _reference({"key": key, "name": name, "fabric": fabric, "res": res},
                                 out_dir)
-            error = 1000 * rms_distance(np.load(npz)[key].astype(np.float64), ref, h)
+            error = 1000 * rms_distance(first[key].astype(np.float64), ref, h)
         gpu_over_cpu = alone[0]["s_per_sim_s"] / per_scene
         out.append({"scene": f"{name} {res}", "fabric": fabric, "copies": g["copies"],
                     "gpu_per_scene": per_scene, "cpu_alone": alone[0]["s_per_sim_s"],
@@ -586,8 +588,8 @@ def report(out_dir: Path) -> None:
     pos = {a: np.load(out_dir / f"{a}.npz") for a in ("cuda", "cpu")}
     machine, profile, limit = load("machine"), load("profile"), load("serial_limit")[0]
     # Modes not repeated in this run, their files copied from an earlier one (carried.json:
-    # {"from": "<date, device>", "modes": [...], "notes": {mode: text}}), so that a short
-    # device call need not redo them; their figures are labelled with the run they come from.
+    # {"from": "<date, device>", "modes": [...]}), so that a short device call need not redo
+    # them; their figures are labelled with the run they come from.
     carried = load("carried") if (out_dir / "carried.json").exists() else {}
 
     def earlier(mode: str) -> str:
@@ -649,12 +651,12 @@ def report(out_dir: Path) -> None:
         "GPU rate / CPU rate |",
         "|---|---|---|---|---|---|---|",
     ]
-    cpu_batch = {(b.get("res", "4k"), b["copies"]): b for b in batches["cpu"]}
+    cpu_batch = {(b["res"], b["copies"]): b for b in batches["cpu"]}
     for b in batches["cuda"]:
-        cb = cpu_batch.get((b.get("res", "4k"), b["copies"]))
+        cb = cpu_batch.get((b["res"], b["copies"]))
         cpu = f"{cb['s_per_sim_s']:.2f}" if cb else "-"
         ratio = f"{cb['s_per_sim_s'] / b['s_per_sim_s']:.2f}x" if cb else "-"
-        lines.append(f"| {b.get('res', '4k')} | {b['copies']} | {b['vertices']} | "
+        lines.append(f"| {b['res']} | {b['copies']} | {b['vertices']} | "
                      f"{b['s_per_sim_s']:.2f} | {cpu} | {b['s_per_sim_s'] / b['copies']:.3f} | "
                      f"{ratio} |")
     lines += tube_batch_lines(out_dir)
@@ -680,8 +682,6 @@ def report(out_dir: Path) -> None:
                     f"{r['strain_p999_max']:.3f} | {r['kinetic_per_kg_max']:.2f} | "
                     f"{r['retries']} | {r['wall_s']:.0f} | "
                     f"{_verdict(r)} |")
-        if carried.get("notes", {}).get("hard"):  # what changed since those rows were run
-            lines += ["", carried["notes"]["hard"]]
     own = {a: load(f"self_collision_{a}") for a in ("cuda", "cpu")
            if (out_dir / f"self_collision_{a}.json").exists()}
     if own:
@@ -694,7 +694,7 @@ def report(out_dir: Path) -> None:
             f"({g['auto'] / g['auto,-self_collision']:.2f}x), CPU {c['auto']:.2f} against "
             f"{c['auto,-self_collision']:.2f} ({c['auto'] / c['auto,-self_collision']:.2f}x).",
         ]
-    widest = [b for b in batches["cuda"] if b.get("res", "4k") == "4k"][-1]
+    widest = [b for b in batches["cuda"] if b["res"] == "4k"][-1]
     ratios = [r["cpu"]["s_per_sim_s"] / r["gpu"]["s_per_sim_s"] for r in summary]
     one_cpu = cpu_batch[("4k", 1)]["s_per_sim_s"]
     lines += [
