@@ -36,7 +36,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import subprocess
 import sys
 import time
@@ -393,9 +392,11 @@ def run_all(out_dir: Path, scenes: Path | None) -> None:
                        check=True)
     machine = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
                              capture_output=True, text=True).stdout.strip()
+    from datagen.study.cache import source_digest
+
     (out_dir / "machine.json").write_text(json.dumps(
         {"gpu": machine, "cpu_cores": os.cpu_count(), "date": time.strftime("%Y-%m-%d"),
-         "python": sys.version.split()[0]}))
+         "python": sys.version.split()[0], "source": source_digest()}))
 
 
 def _reference(row: dict, out_dir: Path) -> tuple[np.ndarray, int]:
@@ -447,26 +448,26 @@ def _verdict(row: dict) -> str:
     return "pass: " + row["detail"] if row.get("escalated_from") else "pass"
 
 
-def blender_rows() -> tuple[str, dict[tuple[str, str], dict]]:
-    """bench_sim's first table as docs/benchmarks.md has it (its date, and per scene and
+def blender_rows(source: str) -> tuple[str, dict[tuple[str, str], dict]]:
+    """bench_sim's peer rows as its last full run wrote them (its date, and per scene and
     fabric our one-thread rate, Blender's rate and Blender's error): Blender cannot run on the
-    GPU machine, so a batch is compared with it through one CPU thread, measured on both."""
-    from benchmarks.common import REPORT
+    GPU machine, so a batch is compared with it through one CPU thread, measured on both. The
+    chain holds only where both ran the same simulator (`source`: the GPU run's digest)."""
+    from benchmarks.bench_sim import PEER_JSON
 
-    text = REPORT.read_text()
-    section = text.split("<!-- bench:sim:start -->")[1].split("<!-- bench:sim:end -->")[0]
-    date = re.search(r"\((\d{4}-\d{2}-\d{2}),", section).group(1)
-    rows = {}
-    for line in section.splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == 12 and cells[0].split()[0] in ("sheet_sphere", "tube_cylinder"):
-            try:
-                rows[(cells[0], cells[1])] = {"ours": float(cells[3]),
-                                              "blender": float(cells[4]),
-                                              "blender_error_mm": float(cells[9])}
-            except ValueError:
-                continue
-    return date, rows
+    data = json.loads(PEER_JSON.read_text())
+    if data["source"] != source:
+        raise SystemExit(
+            f"{PEER_JSON}: field 'source': bench_sim's peer rows ({data['date']}) were "
+            f"measured with simulator sources {data['source']}, the GPU run with {source}; "
+            "a batch is set against Blender through one CPU thread of each, so both must run "
+            "the same simulator: run bench_sim at the GPU run's sources, or the GPU run at "
+            "bench_sim's")
+    rows = {(r["scene"], r["fabric"]): {"ours": r["ours_s_per_sim_s"],
+                                        "blender": r["blender_s_per_sim_s"],
+                                        "blender_error_mm": r["blender_err_mm"]}
+            for r in data["rows"]}
+    return data["date"], rows
 
 
 def batch_against_blender(out_dir: Path, batches: dict) -> list[dict]:
@@ -476,7 +477,8 @@ def batch_against_blender(out_dir: Path, batches: dict) -> list[dict]:
     (where the run saved it) against the scene's float64 reference."""
     from datagen.study.metrics import rms_distance
 
-    date, blender = blender_rows()
+    machine = json.loads((out_dir / "machine.json").read_text())
+    date, blender = blender_rows(machine["source"])
     tubes = {a: json.loads((out_dir / f"batch_tubes_{a}.json").read_text())
              for a in ("cuda", "cpu") if (out_dir / f"batch_tubes_{a}.json").exists()}
 

@@ -22,21 +22,25 @@ body, and what the per-scene effect rules save.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import sys
 import time
 
-from benchmarks.common import write_section
+from benchmarks.common import REPO, write_section
 from datagen.errors import RejectedSequence
 from datagen.sim.simulate import QUALITY_PRESETS
 from datagen.study import blender as peer
+from datagen.study.cache import source_digest
 from datagen.study.metrics import rms_distance
 from datagen.study.run import PEER_EFFECTS, run_ours
 from datagen.study.scenes import build_scene
 from datagen.study.sweep import CHAOS_MM, TWIN_METRES, predictable_frames, run_worker
 
 COMMAND = "python -m benchmarks.bench_sim"
+# The peer rows as data (bench_gpu sets a GPU batch against Blender through them).
+PEER_JSON = REPO / "benchmarks" / "results" / "sim_peer.json"
 PEER_SCENES = [("sheet_sphere", "4k"), ("sheet_sphere", "10k"), ("tube_cylinder", "5k")]
 FABRICS = ["cotton", "denim"]
 PAIR_REPEATS = 3  # pairs of simultaneous t-shirt runs (two_core_figures)
@@ -350,6 +354,12 @@ def main(argv: list[str] | None = None) -> None:
     ]
     write_section("sim", "Cloth simulator: speed against Blender, accuracy, effects",
                   "\n".join(lines), COMMAND + (" --quick" if args.quick else ""))
+    if rows and not args.quick:
+        PEER_JSON.write_text(json.dumps({
+            "date": time.strftime("%Y-%m-%d"), "command": COMMAND,
+            "blender": peer.blender_version(), "source": source_digest(),
+            "rows": rows, "machine": machine,
+        }, indent=1, default=float) + "\n")
 
 
 if __name__ == "__main__":

@@ -400,7 +400,9 @@ def limit_after_contact_active(
     limit, or shortened to it (and then its ends moved). So a later sweep needs only the springs
     around the moved vertices: it reaches the state and the stopping test of a full sweep for
     the cost of the springs contact left stretched instead of all of them.
-    `adj`: each vertex's springs (CSR: n + 1 offsets, then spring indices). `lists` (5 n + 2,
+    `adj`: each vertex's springs (CSR: n + 1 offsets, then spring indices), then the order of the
+    first sweep (a spring index each: the model's order, not the wavefront order of the
+    constraint sweeps, see XPBDSolver._init_active_limit). `lists` (5 n + 2,
     see XPBDSolver._init_active_limit): queued flags, moved flags, the queue's two halves (this
     sweep's vertices and the next's), the vertices the limit moved (for contact afterwards),
     and two counters (the next sweep's list, the moved list). Returns how many moved; the
@@ -410,7 +412,10 @@ def limit_after_contact_active(
     lists[5 * nv + 1] = 0
     cur = 2 * nv
     worst = 0.0
-    for e in range(springs.shape[0]):
+    n_springs = springs.shape[0]
+    first = nv + 1 + 2 * n_springs  # in adj: the first sweep's order
+    for k in range(n_springs):
+        e = adj[first + k]
         worst = ti.max(worst, _limit_and_enqueue(e, x, w, springs, limit, contact_n, lists, cur))
     cur_len = lists[5 * nv]
     sweep = 1
@@ -590,6 +595,22 @@ def bends_coloured(
         r = colour_range(c, n_colours, reverse, colour_ptr)
         for k in range(r[0], r[1]):
             bend_gs_one(order[k], x, xp, w, bends, kw, comp, beta, lam_b, h, omega)
+
+
+@ti.kernel
+def wavefront_levels(elements: I1, width: ti.i32, last: I1, level: I1):
+    """Each element's wavefront level (solvers.wavefront_order): one more than the highest
+    level among the earlier elements that share a vertex with it. `elements` holds `width`
+    vertex indices per element; `last` (one per vertex, zeros) is the running maximum."""
+    ti.loop_config(serialize=True)
+    for e in range(level.shape[0]):
+        lv = 0
+        for q in range(width):
+            lv = ti.max(lv, last[elements[e * width + q]])
+        lv += 1
+        level[e] = lv
+        for q in range(width):
+            last[elements[e * width + q]] = lv
 
 
 # -- explicit forces ---------------------------------------------------------------------------

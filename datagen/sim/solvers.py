@@ -69,6 +69,29 @@ def fresh_guards(n: int) -> np.ndarray:
     return g
 
 
+def wavefront_order(elements: np.ndarray, n_vertices: int) -> np.ndarray:
+    """A serial Gauss-Seidel order that gives the same result as visiting the elements (rows of
+    vertex indices: springs, bending stencils) in index order, with neighbours in the order
+    rarely sharing a vertex.
+
+    Two elements that share no vertex commute exactly (each reads and writes only its own
+    vertices and multiplier), so any order that keeps every pair that shares one in index order
+    gives the same floats. This one sorts by wavefront: an element's level is one more than the
+    highest level among the earlier elements it shares a vertex with, and the elements of a
+    level share none. In mesh order nearly every element shares a vertex with the one before,
+    and a serial sweep waits for each update (a square root and divisions) before the next; in
+    wavefront order the CPU overlaps them (a 10k sheet's springs, 19 -> 11 ns each). Visited
+    backwards it matches a reverse sweep in index order the same way."""
+    m, width = elements.shape
+    if m == 0:
+        return np.zeros(0, np.int64)
+    init_taichi()
+    level = _nd(ti.i32, np.zeros(m, np.int32))
+    K.wavefront_levels(_nd(ti.i32, elements.astype(np.int32).ravel()), width,
+                       _nd(ti.i32, np.zeros(n_vertices, np.int32)), level)
+    return np.lexsort((np.arange(m), level.to_numpy())).astype(np.int64)
+
+
 def _nd(dtype, data: np.ndarray):
     arr = ti.ndarray(dtype, max(len(data), 1))
     if len(data):
@@ -124,18 +147,26 @@ def _vertex_lists_nd(owner: np.ndarray, n: int):
 
 
 class _SpringSet:
-    def __init__(self, model: ClothModel, select: np.ndarray) -> None:
-        self.count = int(select.sum())
-        self.springs = _nd(ti.math.ivec2, model.springs[select].astype(np.int32))
-        self.rest = _nd(REAL, model.rest_length[select].astype(NP_REAL))
-        self.limit = _nd(REAL, model.limit_length[select].astype(NP_REAL))
-        self.k_t = _nd(REAL, model.k_tension[select].astype(NP_REAL))
-        self.k_c = _nd(REAL, model.k_compression[select].astype(NP_REAL))
-        self.comp_t = _nd(REAL, (1.0 / model.k_tension[select]).astype(NP_REAL))
-        self.comp_c = _nd(REAL, (1.0 / model.k_compression[select]).astype(NP_REAL))
-        self.beta = _nd(REAL, model.spring_beta[select].astype(NP_REAL))
+    """The springs of one kind in the order a sweep visits them: the model's, or its wavefront
+    order (`wavefront`, serial Gauss-Seidel sweeps: the same result, faster)."""
+
+    def __init__(self, model: ClothModel, select: np.ndarray, wavefront: bool = False) -> None:
+        index = np.flatnonzero(select)
+        # order[k]: the position in the model's order of the set's k-th spring
+        self.order = (wavefront_order(model.springs[index], model.n_vertices) if wavefront
+                      else np.arange(len(index)))
+        index = index[self.order]
+        self.index = index
+        self.count = len(index)
+        self.springs = _nd(ti.math.ivec2, model.springs[index].astype(np.int32))
+        self.rest = _nd(REAL, model.rest_length[index].astype(NP_REAL))
+        self.limit = _nd(REAL, model.limit_length[index].astype(NP_REAL))
+        self.k_t = _nd(REAL, model.k_tension[index].astype(NP_REAL))
+        self.k_c = _nd(REAL, model.k_compression[index].astype(NP_REAL))
+        self.comp_t = _nd(REAL, (1.0 / model.k_tension[index]).astype(NP_REAL))
+        self.comp_c = _nd(REAL, (1.0 / model.k_compression[index]).astype(NP_REAL))
+        self.beta = _nd(REAL, model.spring_beta[index].astype(NP_REAL))
         self.lam = _nd(REAL, np.zeros(self.count, NP_REAL))
-        self.index = np.flatnonzero(select)
 
 
 class ClothSolver:
@@ -145,6 +176,9 @@ class ClothSolver:
     # Long-range attachments to the pins (ClothModel.tethers): the xpbd solver's sweeps need them
     # to hold a hanging garment's strain limit; the others project the limit to a tolerance.
     uses_tethers = False
+    # Serial Gauss-Seidel sweeps visit springs and bends in wavefront order (wavefront_order);
+    # solvers that sum forces keep the model's order.
+    wavefront = False
 
     def __init__(self, model: ClothModel, effects: Effects, settings: SolverSettings) -> None:
         init_taichi()
@@ -174,6 +208,8 @@ class ClothSolver:
         self.contact_v = _nd(VEC3, np.zeros((n, 3), NP_REAL))
         self.gravity = VEC3(*settings.gravity)
         self.wind = VEC3(*(settings.wind if effects.wind else (0.0, 0.0, 0.0)))
+        # Parallel backends sweep by colour: there the order does not matter.
+        wavefront = self.wavefront and not self.parallel
         self.sets: dict[str, _SpringSet] = {}
         kinds = [
             ("stretch", effects.stretch, (model.spring_kind == STRUCTURAL) & ~model.spring_elastic),
@@ -183,18 +219,23 @@ class ClothSolver:
         ]
         for name, on, select in kinds:
             if on and select.any():
-                self.sets[name] = _SpringSet(model, select)
+                self.sets[name] = _SpringSet(model, select, wavefront)
         if not effects.elastic and model.spring_elastic.any() and effects.stretch:
             # Without the elastic effect, elastic loops are plain fabric.
             plain = model.spring_elastic
-            self.sets["stretch_loops"] = _SpringSet(_unelastic(model), plain)
+            self.sets["stretch_loops"] = _SpringSet(_unelastic(model), plain, wavefront)
         self.n_bends = len(model.bends) if effects.bending else 0
+        # The bending stencils in sweep order: the model index of each.
+        self.bend_order = (wavefront_order(model.bends, n) if wavefront and self.n_bends
+                           else np.arange(self.n_bends))
         if self.n_bends:
-            self.bends = _nd(ti.math.ivec4, model.bends)
-            self.kw = _nd(VEC4, model.bend_weights.astype(NP_REAL))
-            self.bstiff = _nd(REAL, model.bend_stiffness.astype(NP_REAL))
-            self.bcomp = _nd(REAL, (1.0 / model.bend_stiffness).astype(NP_REAL))
-            self.bbeta = _nd(REAL, model.bend_beta.astype(NP_REAL))
+            b = self.bend_order
+            self.bends_np = model.bends[b]
+            self.bends = _nd(ti.math.ivec4, self.bends_np)
+            self.kw = _nd(VEC4, model.bend_weights[b].astype(NP_REAL))
+            self.bstiff = _nd(REAL, model.bend_stiffness[b].astype(NP_REAL))
+            self.bcomp = _nd(REAL, (1.0 / model.bend_stiffness[b]).astype(NP_REAL))
+            self.bbeta = _nd(REAL, model.bend_beta[b].astype(NP_REAL))
             self.lam_b = ti.ndarray(VEC3, self.n_bends)
         self.n_pins = len(model.pinned) if effects.pins else 0
         if self.n_pins:
@@ -504,6 +545,7 @@ def _unelastic(model: ClothModel) -> ClothModel:
 class XPBDSolver(ClothSolver):
     name = "xpbd"
     uses_tethers = True
+    wavefront = True
 
     def __init__(self, model, effects, settings) -> None:
         super().__init__(model, effects, settings)
@@ -511,15 +553,15 @@ class XPBDSolver(ClothSolver):
         self._stiff_h: float | None = None
         self.n_stiff_bends = 0
         if self.n_bends:  # each bend's generalised inverse mass (see STIFF_BEND_RATIO)
-            kw2 = model.bend_weights.astype(np.float64) ** 2
-            self.bend_inv_mass = (kw2 * self.w_np.astype(np.float64)[model.bends]).sum(axis=1)
+            kw2 = model.bend_weights[self.bend_order].astype(np.float64) ** 2
+            self.bend_inv_mass = (kw2 * self.w_np.astype(np.float64)[self.bends_np]).sum(axis=1)
         self.stiff_bends = _nd(ti.i32, np.zeros(1, np.int32))
         if not self.gauss_seidel:  # a parallel backend: coloured sweeps
             self.spring_colours = {
                 name: _Colouring(model.springs[s.index], self.n) for name, s in self.sets.items()
             }
             if self.n_bends:
-                self.bend_colours = _Colouring(model.bends, self.n)
+                self.bend_colours = _Colouring(self.bends_np, self.n)
         self._build_fused()
         self._init_active_limit()
         if not self.gauss_seidel:
@@ -527,13 +569,19 @@ class XPBDSolver(ClothSolver):
 
     def _init_active_limit(self) -> None:
         """The arrays of kernels.limit_after_contact_active, over the fused springs (seams and
-        elastics have no limit, so it never moves them): each vertex's springs (CSR offsets,
-        then spring indices) and its vertex lists (queued flags, moved flags, the queue's two
-        halves, the moved vertices: 5 n entries, and two counters)."""
+        elastics have no limit, so it never moves them): `limit_adj` holds each vertex's springs
+        (CSR offsets, then fused spring indices) and the order of its first sweep; the vertex
+        lists (queued flags, moved flags, the queue's two halves, the moved vertices: 5 n
+        entries, and two counters). It visits the springs in the model's order: its sweeps
+        enqueue the vertices they move, so the order matters beyond pairs that share a vertex
+        (wavefront_order does not apply), and the sweeps stay as they were."""
         pairs = self.f_springs.to_numpy()[: self.f_count]
-        ptr, order = _vertex_lists(pairs.T.ravel(), self.n)  # both ends
-        spring = np.tile(np.arange(len(pairs), dtype=np.int32), 2)
-        self.limit_adj = _nd(ti.i32, np.concatenate([ptr, spring[order]]).astype(np.int32))
+        visit = self.f_model_visit  # fused indices in the model's order
+        ptr, order = _vertex_lists(pairs[visit].T.ravel(), self.n)  # both ends
+        spring = np.tile(visit, 2)
+        self.limit_adj = _nd(
+            ti.i32, np.concatenate([ptr, spring[order], visit]).astype(np.int32)
+        )
         self.limit_lists = _nd(ti.i32, np.zeros(5 * self.n + 2, np.int32))
 
     def _init_coloured_limit(self) -> None:
@@ -603,10 +651,13 @@ class XPBDSolver(ClothSolver):
                 ).astype(dtype)
 
             springs = cat("springs", np.int32)
-            ranges, lo = [], 0
+            ranges, lo, model_pos = [], 0, []
             for s in sets:
                 ranges.append((lo, lo + s.count))
+                model_pos.append(lo + s.order)
                 lo += s.count
+            # The fused springs as the sets list them in the model's order (_init_active_limit).
+            self.f_model_visit = np.argsort(np.concatenate(model_pos)).astype(np.int32)
             self.f_springs = _nd(ti.math.ivec2, springs)
             self.f_rest = _nd(REAL, cat("rest", NP_REAL))
             self.f_limit = _nd(REAL, cat("limit", NP_REAL))
@@ -626,6 +677,7 @@ class XPBDSolver(ClothSolver):
             self.f_ranges = _nd(ti.math.ivec2, np.zeros((1, 2), np.int32))
             self.f_nsets = 0
             self.f_count = 0
+            self.f_model_visit = np.zeros(0, np.int32)
         if not self.n_bends:
             self.bends = _nd(ti.math.ivec4, np.zeros((1, 4), np.int32))
             self.kw = _nd(VEC4, np.zeros((1, 4), NP_REAL))
@@ -647,7 +699,7 @@ class XPBDSolver(ClothSolver):
         sweep order."""
         if not self.n_bends:
             return np.zeros(0, np.int32)
-        compliance = 1.0 / (self.model.bend_stiffness * h * h)
+        compliance = 1.0 / (self.model.bend_stiffness[self.bend_order] * h * h)
         # All four vertices pinned: nothing to move, never stiff.
         stiff = compliance < STIFF_BEND_RATIO * self.bend_inv_mass
         return np.flatnonzero(stiff).astype(np.int32)
@@ -660,7 +712,7 @@ class XPBDSolver(ClothSolver):
         self.n_stiff_bends = len(ids)
         self.stiff_bends = _nd(ti.i32, ids if len(ids) else np.zeros(1, np.int32))
         if not self.gauss_seidel and len(ids):
-            self.stiff_bend_colours = _Colouring(self.model.bends[ids], self.n, ids)
+            self.stiff_bend_colours = _Colouring(self.bends_np[ids], self.n, ids)
         self._stiff_h = h
 
     def advance_frame(self, collider, n_sub: int, h: float, profile: bool = False,
@@ -890,7 +942,7 @@ class ExplicitSolver(ClothSolver):
                 ends = s.springs.to_numpy()  # (the kernel reads its length as the count)
                 self.set_lists[name] = _vertex_lists_nd(ends.T.ravel(), self.n)
             if self.n_bends:
-                self.bend_lists = _vertex_lists_nd(model.bends.ravel(), self.n)
+                self.bend_lists = _vertex_lists_nd(self.bends_np.ravel(), self.n)
 
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
         e = self.effects
