@@ -80,7 +80,8 @@ def wavefront_order(elements: np.ndarray, n_vertices: int) -> np.ndarray:
     highest level among the earlier elements it shares a vertex with, and the elements of a
     level share none. In mesh order nearly every element shares a vertex with the one before,
     and a serial sweep waits for each update (a square root and divisions) before the next; in
-    wavefront order the CPU overlaps them (a 10k sheet's springs, 19 -> 11 ns each). Visited
+    wavefront order the CPU overlaps them (a 10k sheet's stretch springs 16.5 -> 13.3 ns
+    each, its shear springs 31.7 -> 16.3). Visited
     backwards it matches a reverse sweep in index order the same way."""
     m, width = elements.shape
     if m == 0:
