@@ -81,8 +81,8 @@ def wavefront_order(elements: np.ndarray, n_vertices: int) -> np.ndarray:
     level share none. In mesh order nearly every element shares a vertex with the one before,
     and a serial sweep waits for each update (a square root and divisions) before the next; in
     wavefront order the CPU overlaps them (a 10k sheet's stretch springs 16.5 -> 13.3 ns
-    each, its shear springs 31.7 -> 16.3). Visited
-    backwards it matches a reverse sweep in index order the same way."""
+    each, its shear springs 31.7 -> 16.3). Visited backwards it matches a reverse sweep in
+    index order the same way."""
     m, width = elements.shape
     if m == 0:
         return np.zeros(0, np.int64)
@@ -577,7 +577,11 @@ class XPBDSolver(ClothSolver):
         enqueue the vertices they move, so the order matters beyond pairs that share a vertex
         (wavefront_order does not apply), and the sweeps stay as they were."""
         pairs = self.f_springs.to_numpy()[: self.f_count]
-        visit = self.f_model_visit  # fused indices in the model's order
+        # The fused springs (each set's after the ones before) in the model's order.
+        offsets = np.cumsum([0] + [s.count for s in self.sets.values()])
+        visit = np.argsort(np.concatenate(
+            [lo + s.order for lo, s in zip(offsets[:-1], self.sets.values(), strict=True)]
+            + [np.zeros(0, np.int64)]))
         ptr, order = _vertex_lists(pairs[visit].T.ravel(), self.n)  # both ends
         spring = np.tile(visit, 2)
         self.limit_adj = _nd(
@@ -652,13 +656,10 @@ class XPBDSolver(ClothSolver):
                 ).astype(dtype)
 
             springs = cat("springs", np.int32)
-            ranges, lo, model_pos = [], 0, []
+            ranges, lo = [], 0
             for s in sets:
                 ranges.append((lo, lo + s.count))
-                model_pos.append(lo + s.order)
                 lo += s.count
-            # The fused springs as the sets list them in the model's order (_init_active_limit).
-            self.f_model_visit = np.argsort(np.concatenate(model_pos)).astype(np.int32)
             self.f_springs = _nd(ti.math.ivec2, springs)
             self.f_rest = _nd(REAL, cat("rest", NP_REAL))
             self.f_limit = _nd(REAL, cat("limit", NP_REAL))
@@ -678,7 +679,6 @@ class XPBDSolver(ClothSolver):
             self.f_ranges = _nd(ti.math.ivec2, np.zeros((1, 2), np.int32))
             self.f_nsets = 0
             self.f_count = 0
-            self.f_model_visit = np.zeros(0, np.int32)
         if not self.n_bends:
             self.bends = _nd(ti.math.ivec4, np.zeros((1, 4), np.int32))
             self.kw = _nd(VEC4, np.zeros((1, 4), NP_REAL))
