@@ -31,3 +31,48 @@ def test_the_committed_peer_rows_cover_every_peer_scene():
     assert keys == {(f"{scene} {res}", fabric) for scene, res in bench_sim.PEER_SCENES
                     for fabric in bench_sim.FABRICS}
     assert all(r["blender_err_mm"] > 0 and r["ours_s_per_sim_s"] > 0 for r in data["rows"])
+
+
+def test_the_bending_study_solves_its_block_exactly_and_consistently():
+    """benchmarks/study_bend_block.py sets an exact bending block against the sweeps: after
+    its solve every stencil's XPBD equation holds, (1 + gamma) B x + alpha~ lambda - gamma B xp
+    = 0, and the move is the one the multipliers give (dx = W B^T dl, pinned vertices still),
+    as Gauss-Seidel keeps it."""
+    import numpy as np
+
+    from benchmarks.study_bend_block import ExactBendBlock
+    from datagen.sim.effects import Effects
+    from datagen.sim.fabrics import FABRICS
+    from datagen.sim.model import build_cloth_model
+    from datagen.sim.precision import NP_REAL
+    from datagen.sim.solvers import SolverSettings, XPBDSolver
+    from datagen.study.scenes import build_scene
+
+    scene = build_scene("tube_cylinder", "denim", "coarse", frames=1)
+    model = build_cloth_model([(g, FABRICS[g.fabric]) for g in scene.garments])
+    solver = XPBDSolver(model, Effects(pins=True), SolverSettings(substeps=20, iterations=2))
+    h = 1.0 / 30.0 / 20
+    rng = np.random.default_rng(3)
+    xp = model.x0.astype(NP_REAL)
+    x = (model.x0 + rng.normal(scale=0.003, size=model.x0.shape)).astype(NP_REAL)
+    lam0 = rng.normal(scale=1e-6, size=(len(solver.bends_np), 3)).astype(np.float32)
+    solver.x.from_numpy(x)
+    solver.xp.from_numpy(xp)
+    solver.lam_b.from_numpy(lam0)
+    block = ExactBendBlock(solver, h)
+
+    def residual(x, lam):
+        b_x = block.B @ x.astype(np.float64)
+        return ((1.0 + block.gamma)[:, None] * b_x + block.alpha[:, None] * lam
+                - block.gamma[:, None] * (block.B @ xp.astype(np.float64)))
+
+    before = np.abs(residual(x, lam0)).max()
+    block.solve(solver)
+    x1, lam1 = solver.x.to_numpy(), solver.lam_b.to_numpy().astype(np.float64)
+    assert np.abs(residual(x1, lam1)).max() < 1e-3 * before
+    w = solver.w_np.astype(np.float64)
+    moved = x1.astype(np.float64) - x
+    assert len(model.pinned) and np.all(moved[model.pinned] == 0.0)
+    expected = w[:, None] * (block.B.T @ (lam1 - lam0))
+    assert np.abs(moved - expected).max() < 1e-3 * np.abs(moved).max()
+    assert np.abs(moved).max() > 1e-4  # the solve did move the cloth

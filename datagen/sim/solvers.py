@@ -857,13 +857,7 @@ class XPBDSolver(ClothSolver):
             # velocity, and run last (with one iteration) it undid the springs' corrections on
             # a 1 cm cotton sheet at first contact, which grew 30x a frame into a runaway.
             if self.gauss_seidel:
-                if self.n_bends and it == 0:
-                    self._run("bending", K.bends_gauss_seidel, *self._bend_args(),
-                              self.stiff_bends, self.n_stiff_bends, h, reverse, sor, False)
-                elif self.n_stiff_bends:
-                    # Not over-relaxed (see the fused kernel).
-                    self._run("bending", K.bends_gauss_seidel, *self._bend_args(),
-                              self.stiff_bends, self.n_stiff_bends, h, reverse, 1.0, True)
+                self._bending_sweep(h, it, reverse, sor)
                 for name, s in self.sets.items():
                     self._run(
                         name,
@@ -900,6 +894,17 @@ class XPBDSolver(ClothSolver):
             self.contact_v,
             h,
         )
+
+    def _bending_sweep(self, h: float, it: int, reverse: int, sor: float) -> None:
+        """Iteration it's bending on the serial per-effect path: every stencil in the first
+        sweep, over-relaxed by `sor`, and the stiff ones in the later sweeps, plain (see the
+        fused kernel). benchmarks/study_bend_block.py replaces it with an exact solve."""
+        if self.n_bends and it == 0:
+            self._run("bending", K.bends_gauss_seidel, *self._bend_args(),
+                      self.stiff_bends, self.n_stiff_bends, h, reverse, sor, False)
+        elif self.n_stiff_bends:
+            self._run("bending", K.bends_gauss_seidel, *self._bend_args(),
+                      self.stiff_bends, self.n_stiff_bends, h, reverse, 1.0, True)
 
     def _bend_args(self) -> tuple:
         """The bending kernels' leading arguments (positions, stencils, weights, compliance,
