@@ -191,7 +191,8 @@ def two_core_figures(scene: tuple[str, str, str] = TSHIRT, effects: str = "auto"
 
 def machine_row(row: dict, scene_name: str, resolution: str, fabric: str, log) -> dict:
     """Both simulators using the machine's two cores as a dataset run would, on a peer scene:
-    ours two simulations at once (one per core); Blender two at once with one thread each, or
+    ours two simulations at once (one per core); Blender two at once with one thread each
+    (datagen.study.blender.run_blender caps OpenMP with `-t`), or
     one with its default threads (row's rate), whichever simulates more in all."""
     from concurrent.futures import ThreadPoolExecutor
 
@@ -315,11 +316,15 @@ def main(argv: list[str] | None = None) -> None:
             "",
             "The machine as a dataset run uses it (simulated seconds per wall-clock second of "
             "the whole machine, both cores): ours as two simulations at once, one per core; "
-            "Blender as two at once with `-t 1` each, or as one with its default threads "
-            "(the table above), whichever simulates more. Same scenes, settings and effects as "
-            "above, measured in this run.",
+            "Blender as two at once with `-t 1` and one OpenMP thread each (`-t` alone leaves "
+            "OpenMP a thread per core, and two such Blenders ran 7x slower each: before "
+            "2026-11-27 this table set ours against Blender's one run for that reason, "
+            "1.4-1.8x in our favour), or as one with its default threads (the table above), "
+            "whichever simulates more. Same scenes, settings and effects as above, measured "
+            "in this run.",
             "",
-            "| scene | fabric | ours, two at once | Blender, two at once (`-t 1`) | Blender, one "
+            "| scene | fabric | ours, two at once | Blender, two at once (`-t 1`, one OpenMP "
+            "thread) | Blender, one "
             "(its threads) | machine ratio |",
             "|---|---|---|---|---|---|",
         ]

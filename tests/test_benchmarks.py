@@ -76,3 +76,32 @@ def test_the_bending_study_solves_its_block_exactly_and_consistently():
     expected = w[:, None] * (block.B.T @ (lam1 - lam0))
     assert np.abs(moved - expected).max() < 1e-3 * np.abs(moved).max()
     assert np.abs(moved).max() > 1e-4  # the solve did move the cloth
+
+
+def test_blender_at_one_thread_is_given_one_openmp_thread_too(monkeypatch):
+    """bench_sim's machine ratio runs two Blenders side by side at `-t 1`. `-t` does not cap
+    Blender's OpenMP threads, and two Blenders each spinning a thread per core ran 7x slower
+    each (4k sheet, 60 frames: 98 s instead of 14), which flattered our machine ratio by
+    1.4-1.8x. With a thread count, run_blender sets OMP_NUM_THREADS to it; without one,
+    Blender keeps its defaults."""
+    from datagen.study import blender as peer
+    from datagen.study.scenes import build_scene
+
+    calls = []
+
+    class Launched(Exception):
+        pass
+
+    def fake_run(cmd, **kwargs):
+        calls.append((cmd, kwargs.get("env")))
+        raise Launched
+
+    monkeypatch.setattr(peer, "blender_executable", lambda: "/usr/bin/blender")
+    monkeypatch.setattr(peer.subprocess, "run", fake_run)
+    scene = build_scene("sheet_sphere", "cotton", "coarse", frames=1)
+    for threads in (1, None):
+        with pytest.raises(Launched):
+            peer.run_blender(scene, 5, threads=threads)
+    (one_cmd, one_env), (default_cmd, default_env) = calls
+    assert one_cmd[one_cmd.index("-t") + 1] == "1" and one_env["OMP_NUM_THREADS"] == "1"
+    assert "-t" not in default_cmd and default_env is None
