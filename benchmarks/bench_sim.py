@@ -317,9 +317,9 @@ def main(argv: list[str] | None = None) -> None:
             "The machine as a dataset run uses it (simulated seconds per wall-clock second of "
             "the whole machine, both cores): ours as two simulations at once, one per core; "
             "Blender as two at once with `-t 1` and one OpenMP thread each (`-t` alone leaves "
-            "OpenMP a thread per core, and two such Blenders ran 7x slower each: before "
-            "2026-11-27 this table set ours against Blender's one run for that reason, "
-            "1.4-1.8x in our favour), or as one with its default threads (the table above), "
+            "OpenMP a thread per core, and two such Blenders ran 7x slower each: until this "
+            "was fixed on 2026-11-27, this table set ours against Blender's one run for that "
+            "reason, 1.4-1.8x in our favour), or as one with its default threads (the table above), "
             "whichever simulates more. Same scenes, settings and effects as above, measured "
             "in this run.",
             "",
