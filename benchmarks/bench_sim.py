@@ -319,9 +319,9 @@ def main(argv: list[str] | None = None) -> None:
             "Blender as two at once with `-t 1` and one OpenMP thread each (`-t` alone leaves "
             "OpenMP a thread per core, and two such Blenders ran 7x slower each: until this "
             "was fixed on 2026-11-27, this table set ours against Blender's one run for that "
-            "reason, 1.4-1.8x in our favour), or as one with its default threads (the table above), "
-            "whichever simulates more. Same scenes, settings and effects as above, measured "
-            "in this run.",
+            "reason, 1.4-1.8x in our favour), or as one with its default threads (the table "
+            "above), whichever simulates more. Same scenes, settings and effects as above, "
+            "measured in this run.",
             "",
             "| scene | fabric | ours, two at once | Blender, two at once (`-t 1`, one OpenMP "
             "thread) | Blender, one "
