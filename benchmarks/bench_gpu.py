@@ -402,15 +402,12 @@ def run_all(out_dir: Path, scenes: Path | None) -> None:
 def _reference(row: dict, out_dir: Path) -> tuple[np.ndarray, int]:
     """The float64 reference of a case and its predictable horizon (bench_sim's), kept in
     out_dir as ref_<key>.npz: each costs minutes here."""
-    from datagen.study.sweep import TWIN_METRES, predictable_frames, run_worker
+    from benchmarks.bench_sim import float64_reference
 
     path = out_dir / f"ref_{row['key']}.npz"
     if not path.exists():
-        args = (row["name"], row["fabric"], row["res"], "implicit", REF_SUBSTEPS, 20, True,
-                ERROR_FRAMES)
-        ref = run_worker(*args)["positions"]
-        twin = run_worker(*args, TWIN_METRES)["positions"]
-        np.savez_compressed(path, ref=ref, horizon=predictable_frames(ref, twin))
+        ref, horizon = float64_reference(row["name"], row["fabric"], row["res"])
+        np.savez_compressed(path, ref=ref, horizon=horizon)
     d = np.load(path)
     return d["ref"], int(d["horizon"])
 

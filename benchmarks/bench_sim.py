@@ -28,6 +28,8 @@ import subprocess
 import sys
 import time
 
+import numpy as np
+
 from benchmarks.common import REPO, write_section
 from datagen.errors import RejectedSequence
 from datagen.sim.simulate import QUALITY_PRESETS
@@ -55,6 +57,16 @@ BLENDER_CONVERGED = 40
 AT_ERROR_STEPS = [(10, 1), (10, 2), (20, 1), (20, 2), (40, 1), (30, 2), (40, 2), (20, 4)]
 
 
+def float64_reference(scene_name: str, fabric: str, resolution: str) -> tuple[np.ndarray, int]:
+    """Our converged run of a peer scene (the implicit solver in float64 at REF_SUBSTEPS per
+    frame, ERROR_FRAMES frames) and its predictable horizon: the frames over which a twin
+    started TWIN_METRES away stays within CHAOS_MM of it."""
+    args = (scene_name, fabric, resolution, "implicit", REF_SUBSTEPS, 20, True, ERROR_FRAMES)
+    ref = run_worker(*args)["positions"]
+    twin = run_worker(*args, TWIN_METRES)["positions"]
+    return ref, predictable_frames(ref, twin)
+
+
 def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
     sub, it = QUALITY_PRESETS["xpbd"]["default"]
     timed_scene = build_scene(scene_name, fabric, resolution, frames=RATE_FRAMES)
@@ -62,13 +74,9 @@ def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
     own = run_ours(timed_scene, "xpbd", sub, it, effects="auto")  # the scene's own
     blender = peer.run_blender(timed_scene, BLENDER_QUALITY)
     short = build_scene(scene_name, fabric, resolution, frames=ERROR_FRAMES)
-    ref = run_worker(scene_name, fabric, resolution, "implicit", REF_SUBSTEPS, 20, True,
-                     ERROR_FRAMES)["positions"]
+    ref, h = float64_reference(scene_name, fabric, resolution)
     half = run_worker(scene_name, fabric, resolution, "implicit", REF_SUBSTEPS // 2, 20, True,
                       ERROR_FRAMES)["positions"]
-    twin = run_worker(scene_name, fabric, resolution, "implicit", REF_SUBSTEPS, 20, True,
-                      ERROR_FRAMES, TWIN_METRES)["positions"]
-    h = predictable_frames(ref, twin)
     b_conv = peer.run_blender(short, BLENDER_CONVERGED).positions
     n = ERROR_FRAMES + 1
     row = {
