@@ -78,6 +78,79 @@ def test_the_bending_study_solves_its_block_exactly_and_consistently():
     assert np.abs(moved).max() > 1e-4  # the solve did move the cloth
 
 
+def _study_tube():
+    from datagen.sim.fabrics import FABRICS
+    from datagen.sim.model import build_cloth_model
+    from datagen.study.scenes import build_scene
+
+    scene = build_scene("tube_cylinder", "denim", "coarse", frames=1)
+    return build_cloth_model([(g, FABRICS[g.fabric]) for g in scene.garments])
+
+
+def test_the_prefactored_study_iterates_to_the_implicit_solvers_backward_euler_step():
+    """benchmarks/study_prefactored_implicit.py solves each step with a constant matrix: its
+    fixed point must be the backward Euler step that the implicit solver's Newton iterations
+    reach, or its errors would measure another model. One step of a coarse denim tube hanging
+    from its pins, from a shaken state, no collider."""
+    import numpy as np
+
+    from benchmarks.study_prefactored_implicit import PrefactoredImplicit
+    from datagen.sim.effects import Effects
+    from datagen.sim.implicit import ImplicitSolver
+    from datagen.sim.solvers import SolverSettings
+
+    model = _study_tube()
+    rng = np.random.default_rng(5)
+    x0 = model.x0 + rng.normal(scale=0.002, size=model.x0.shape)
+    v0 = rng.normal(scale=0.05, size=model.x0.shape)
+    x0[model.pinned], v0[model.pinned] = model.x0[model.pinned], 0.0
+    h = 1.0 / 30.0 / 5
+
+    def one_step(solver):
+        solver.set_state(x0, v0)
+        solver.set_pin_targets(model.x0[model.pinned], model.x0[model.pinned])
+        solver.substep(h, None, 0.0, 1.0)
+        return solver.get_state()[0].astype(np.float64)
+
+    effects = Effects(pins=True)
+    newton = one_step(ImplicitSolver(model, effects, SolverSettings(
+        iterations=50, tolerance=1e-7, cg_tolerance=1e-7, cg_max_iterations=5000)))
+    many = one_step(PrefactoredImplicit(model, effects, SolverSettings(iterations=400)))
+    one = one_step(PrefactoredImplicit(model, effects, SolverSettings(iterations=1)))
+    moved = np.abs(newton - x0).max()
+    assert moved > 1e-3  # the step did move the cloth
+    assert np.abs(many - newton).max() < 1e-3 * moved
+    assert np.abs(one - newton).max() > 1e-2 * moved  # one iteration is inexact
+
+
+def test_the_prefactored_studys_bdf2_falls_as_a_body_falls():
+    """BDF2, the study's second-order integrator, follows a free fall to a small fraction of
+    backward Euler's lag (g h t / 2, 6.5 mm after 0.2 s at 150 steps a second): the sheets'
+    error at a few steps a frame is mostly that lag."""
+    import numpy as np
+
+    from benchmarks.study_prefactored_implicit import PrefactoredImplicit
+    from datagen.sim.effects import Effects
+    from datagen.sim.solvers import SolverSettings
+
+    model = _study_tube()
+    h, steps = 1.0 / 150.0, 30
+    t = h * steps
+    exact = -0.5 * 9.81 * t * t
+    drop = {}
+    for bdf2 in (False, True):
+        solver = PrefactoredImplicit(model, Effects(air_drag=False), SolverSettings(iterations=2))
+        solver.bdf2 = bdf2
+        for _ in range(steps):
+            solver.substep(h, None, 0.0, 1.0)
+        x = solver.get_state()[0].astype(np.float64)
+        drop[bdf2] = (x - model.x0)[:, 2].mean()
+    lag = 0.5 * 9.81 * h * t
+    assert abs(drop[False] - exact) == pytest.approx(lag, rel=0.05)  # backward Euler's lag
+    # BDF2 keeps only its backward Euler first step's offset (order h^2 g), which does not grow
+    assert abs(drop[True] - exact) < 2.0 * h * h * 9.81 < 0.15 * lag
+
+
 def test_blender_at_one_thread_is_given_one_openmp_thread_too(monkeypatch):
     """bench_sim's machine ratio runs two Blenders side by side at `-t 1`. `-t` does not cap
     Blender's OpenMP threads, and two Blenders each spinning a thread per core ran 7x slower
