@@ -52,7 +52,6 @@ import taichi as ti
 import datagen.sim.simulate as simulate_module
 from benchmarks.bench_sim import ERROR_FRAMES, PEER_JSON, float64_reference
 from datagen.sim import implicit_kernels as IK
-from datagen.sim import kernels as K
 from datagen.sim.effects import Effects
 from datagen.sim.fabrics import FABRICS
 from datagen.sim.implicit import ImplicitSolver
@@ -170,8 +169,7 @@ class PrefactoredImplicit(ImplicitSolver):
                         self.n_bends, self.gravity, self.effects.gravity, self.use_air)
         return self.grad.to_numpy().astype(np.float64)[self.free]
 
-    def substep(self, h: float, collider, s0: float, s1: float) -> None:
-        t = time.perf_counter()
+    def _solve(self, h: float, s1: float) -> tuple:
         # BDF2: x = x_hat + (2h/3)^2 a(x), x_hat = xd + (2h/3) vd, with the velocity after the
         # step (x - xd) / (2h/3); gradient_all takes (xd, vd, 2h/3) as it takes (x_n, v_n, h).
         second_order = self.bdf2 and self.steps > 0
@@ -185,16 +183,8 @@ class PrefactoredImplicit(ImplicitSolver):
         for _ in range(max(1, self.settings.iterations)):
             x[self.free] -= lu.solve(self.gradient(hs))
             self.x.from_numpy(x.astype(NP_REAL))
-        self.costs["implicit_solve"] += time.perf_counter() - t
-        self.launches["implicit_solve"] += 1
-        self._limit_strain(h)
-        self._pins(s1)
-        self._collide(collider, s0, s1, h)
-        self._cloth_collisions(h, s0, s1)
-        self._limit_after_contact(collider, s0, s1, h)
         # velocity (x - xd) / hs: backward Euler's (x - x_n) / h, or BDF2's
-        self._run("integration", K.finish, self.x, self.xn, self.v, self.w, self.contact_n,
-                  self.contact_v, hs)
+        return self.xn, hs
 
 
 BUILT: list[PrefactoredImplicit] = []  # the last run's solver (its costs)

@@ -74,6 +74,21 @@ class ImplicitSolver(ClothSolver):
         import time
 
         t = time.perf_counter()
+        start, h_velocity = self._solve(h, s1)
+        self.costs["implicit_solve"] += time.perf_counter() - t
+        self.launches["implicit_solve"] += 1
+        self._limit_strain(h)
+        self._pins(s1)
+        self._collide(collider, s0, s1, h)
+        self._cloth_collisions(h, s0, s1)
+        self._limit_after_contact(collider, s0, s1, h)
+        self._run("integration", K.finish, self.x, start, self.v, self.w, self.contact_n,
+                  self.contact_v, h_velocity)
+
+    def _solve(self, h: float, s1: float) -> tuple:
+        """The step's solve, from the pinned targets at s1; returns what the velocity after the
+        projections is taken from: (x - start) / h_velocity (here the step's start and h;
+        benchmarks/study_prefactored_implicit.py's BDF2 differs)."""
         IK.inertial_guess(self.x, self.xn, self.v, self.pinned, h)
         self.xp.copy_from(self.xn)
         self._pins(s1)
@@ -100,15 +115,7 @@ class ImplicitSolver(ClothSolver):
             self.P, self.Q, self.stats,
             self.effects.gravity, self.effects.air_drag or self.effects.wind,
         )  # fmt: skip
-        self.costs["implicit_solve"] += time.perf_counter() - t
-        self.launches["implicit_solve"] += 1
-        self._limit_strain(h)
-        self._pins(s1)
-        self._collide(collider, s0, s1, h)
-        self._cloth_collisions(h, s0, s1)
-        self._limit_after_contact(collider, s0, s1, h)
-        self._run("integration", K.finish, self.x, self.xp, self.v, self.w, self.contact_n,
-                  self.contact_v, h)
+        return self.xp, h
 
     @property
     def newton_iterations(self) -> int:
