@@ -51,9 +51,9 @@ ERROR_FRAMES = 16  # frames simulated for the error measures (the horizon is wit
 REF_SUBSTEPS = 160
 BLENDER_QUALITY = 5
 # Blender's converged run: its highest quality affordable over ERROR_FRAMES, checked against
-# half of it. Quality 40 (until 2026-11-27) was not converged: 7-10 mm from quality 320 on the
-# 4k sheets, where quality 160 and 320 agree to 0.3 mm (Blender's error there read 1.6x too
-# large), and 15 mm on the denim tube (its error there read 18 % too small).
+# half of it. Quality 40 (until 2026-11-27) was not converged: 7.5-10.4 mm from qualities 20,
+# 80 and 160 on the 4k sheets, where 160 and 320 agree to 0.3 mm (Blender's error there read
+# 1.6x too large), and 15 mm from 160 on the denim tube (its error there read 18 % too small).
 BLENDER_CONVERGED = 320
 # xpbd settings tried at Blender's error (substeps x iterations): the cheaper corner of the
 # study's plan, up to the default, and two sweeps at 30 and 40 substeps (on the denim tube, 30x2
@@ -272,8 +272,9 @@ def main(argv: list[str] | None = None) -> None:
         "each converged run against the same simulator at half its steps (ours at "
         f"{REF_SUBSTEPS // 2} substeps, Blender at quality {BLENDER_CONVERGED // 2}): how far "
         "the reference itself may be from converged. Until 2026-11-27 Blender's converged run "
-        "was quality 40, which was 7-10 mm from quality 320 on the 4k sheets and set Blender's "
-        "error there 1.6x too high (and 18 % too low on the denim tube). 'Converged gap' is "
+        "was quality 40, which on the 4k sheets was 7.5-10.4 mm from qualities 20, 80 and 160 "
+        "(160 and 320 agree to 0.3 mm) and set Blender's error there 1.6x too high (and 18 % "
+        "too low on the denim tube). 'Converged gap' is "
         "Blender's converged run against ours (the model difference, not an error of either).",
         "",
         "| scene | fabric | vertices | ours s/sim-s | Blender s/sim-s | speed ratio | ours, own "
