@@ -404,12 +404,8 @@ def _reference(row: dict, out_dir: Path) -> tuple[np.ndarray, int]:
     out_dir as ref_<key>.npz: each costs minutes here."""
     from benchmarks.bench_sim import float64_reference
 
-    path = out_dir / f"ref_{row['key']}.npz"
-    if not path.exists():
-        ref, horizon = float64_reference(row["name"], row["fabric"], row["res"])
-        np.savez_compressed(path, ref=ref, horizon=horizon)
-    d = np.load(path)
-    return d["ref"], int(d["horizon"])
+    return float64_reference(row["name"], row["fabric"], row["res"],
+                             cache=out_dir / f"ref_{row['key']}.npz")
 
 
 def tube_batch_lines(out_dir: Path) -> list[str]:

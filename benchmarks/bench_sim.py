@@ -27,6 +27,7 @@ import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -61,14 +62,23 @@ BLENDER_CONVERGED = 320
 AT_ERROR_STEPS = [(10, 1), (10, 2), (20, 1), (20, 2), (40, 1), (30, 2), (40, 2), (20, 4)]
 
 
-def float64_reference(scene_name: str, fabric: str, resolution: str) -> tuple[np.ndarray, int]:
+def float64_reference(scene_name: str, fabric: str, resolution: str,
+                      cache: Path | None = None) -> tuple[np.ndarray, int]:
     """Our converged run of a peer scene (the implicit solver in float64 at REF_SUBSTEPS per
     frame, ERROR_FRAMES frames) and its predictable horizon: the frames over which a twin
-    started TWIN_METRES away stays within CHAOS_MM of it."""
+    started TWIN_METRES away stays within CHAOS_MM of it. With `cache` (an .npz path) it is
+    kept there and read back next time: each costs minutes."""
+    if cache is not None and cache.exists():
+        with np.load(cache) as d:
+            return d["ref"], int(d["horizon"])
     args = (scene_name, fabric, resolution, "implicit", REF_SUBSTEPS, 20, True, ERROR_FRAMES)
     ref = run_worker(*args)["positions"]
     twin = run_worker(*args, TWIN_METRES)["positions"]
-    return ref, predictable_frames(ref, twin)
+    horizon = predictable_frames(ref, twin)
+    if cache is not None:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(cache, ref=ref, horizon=horizon)
+    return ref, horizon
 
 
 def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
@@ -206,7 +216,7 @@ def two_core_figures(scene: tuple[str, str, str] = TSHIRT, effects: str = "auto"
 def machine_row(row: dict, scene_name: str, resolution: str, fabric: str, log) -> dict:
     """Both simulators using the machine's two cores as a dataset run would, on a peer scene:
     ours two simulations at once (one per core); Blender two at once with one thread each
-    (datagen.study.blender.run_blender caps OpenMP with `-t`), or
+    (datagen.study.blender.run_blender caps OpenMP to the same thread count as `-t`), or
     one with its default threads (row's rate), whichever simulates more in all."""
     from concurrent.futures import ThreadPoolExecutor
 

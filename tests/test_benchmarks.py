@@ -35,6 +35,16 @@ def test_the_committed_peer_rows_cover_every_peer_scene():
     assert all(r["blender_ref_halving_mm"] >= 0 for r in data["rows"])
 
 
+def _study_tube():
+    """The studies' coarse denim tube model (1,200 vertices, 48 pinned along its top)."""
+    from datagen.sim.fabrics import FABRICS
+    from datagen.sim.model import build_cloth_model
+    from datagen.study.scenes import build_scene
+
+    scene = build_scene("tube_cylinder", "denim", "coarse", frames=1)
+    return build_cloth_model([(g, FABRICS[g.fabric]) for g in scene.garments])
+
+
 def test_the_bending_study_solves_its_block_exactly_and_consistently():
     """benchmarks/study_bend_block.py sets an exact bending block against the sweeps: after
     its solve every stencil's XPBD equation holds, (1 + gamma) B x + alpha~ lambda - gamma B xp
@@ -44,14 +54,10 @@ def test_the_bending_study_solves_its_block_exactly_and_consistently():
 
     from benchmarks.study_bend_block import ExactBendBlock
     from datagen.sim.effects import Effects
-    from datagen.sim.fabrics import FABRICS
-    from datagen.sim.model import build_cloth_model
     from datagen.sim.precision import NP_REAL
     from datagen.sim.solvers import SolverSettings, XPBDSolver
-    from datagen.study.scenes import build_scene
 
-    scene = build_scene("tube_cylinder", "denim", "coarse", frames=1)
-    model = build_cloth_model([(g, FABRICS[g.fabric]) for g in scene.garments])
+    model = _study_tube()
     solver = XPBDSolver(model, Effects(pins=True), SolverSettings(substeps=20, iterations=2))
     h = 1.0 / 30.0 / 20
     rng = np.random.default_rng(3)
@@ -78,15 +84,6 @@ def test_the_bending_study_solves_its_block_exactly_and_consistently():
     expected = w[:, None] * (block.B.T @ (lam1 - lam0))
     assert np.abs(moved - expected).max() < 1e-3 * np.abs(moved).max()
     assert np.abs(moved).max() > 1e-4  # the solve did move the cloth
-
-
-def _study_tube():
-    from datagen.sim.fabrics import FABRICS
-    from datagen.sim.model import build_cloth_model
-    from datagen.study.scenes import build_scene
-
-    scene = build_scene("tube_cylinder", "denim", "coarse", frames=1)
-    return build_cloth_model([(g, FABRICS[g.fabric]) for g in scene.garments])
 
 
 def test_the_prefactored_study_iterates_to_the_implicit_solvers_backward_euler_step():
