@@ -544,7 +544,8 @@ def per_scene_lines(rows: list[dict]) -> list[str]:
            ", but not every one with an error no larger than Blender's")
         + ". That is throughput, not the issue's per-scene target: each scene of a batch "
         "takes the batch's whole time, and one scene alone on the GPU is slower than one CPU "
-        "thread (the first table). A dataset run does not batch yet.",
+        "thread (the first table). A dataset run batches its sequences with `datagen "
+        "dataset --batch N` (datagen.pipeline.batched), not yet timed on a GPU.",
     ]
     return lines
 

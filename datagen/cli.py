@@ -371,15 +371,19 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, so
               help="Dask scheduler address (tcp://host:port) instead of local processes.")
 @click.option("--shard-size", type=click.IntRange(min=1), default=None,
               help="Sequences per shard (default: the recipe's).")
+@click.option("--batch", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Sequences each worker simulates at once as one batch: for a GPU "
+                   "(DATAGEN_TI_ARCH=cuda), where one scene is bound by kernel launches; "
+                   "1 on CPUs.")
 @click.option("--progress/--no-progress", default=True, show_default=True)
 @user_errors
-def dataset(pipeline, out, n, workers, scheduler, shard_size, progress) -> None:
+def dataset(pipeline, out, n, workers, scheduler, shard_size, batch, progress) -> None:
     """Run a recipe into a folder of shards, with a manifest and a dataset card; resumable."""
     from datagen.pipeline.dataset import run_dataset
 
     workers = workers or max(1, os.cpu_count() or 1)
     rows = run_dataset(pipeline, out, n=n, workers=workers, scheduler=scheduler,
-                       shard_size=shard_size, progress=progress)
+                       shard_size=shard_size, progress=progress, batch=batch)
     ok = sum(r["status"] == "ok" for r in rows)
     click.echo(f"{out}: {ok} sequences, {len(rows) - ok} rejected; card: {out}/README.md")
 

@@ -169,3 +169,74 @@ def test_foreign_output_folder_is_refused_and_kept(tmp_path):
     with pytest.raises(InputError, match="format_version"):
         run_dataset(tiny_recipe(tmp_path), out, workers=1, progress=False)
     assert foreign.read_bytes() == before
+
+
+def test_a_batched_run_judges_each_sequence_alone_and_resumes_to_the_same_data(tmp_path):
+    """--batch 2: each shard's two sequences simulated as one batch (datagen.pipeline.batched,
+    for GPUs). Every sequence is written valid, with the report naming its batch, whose
+    vertices are the two sequences' together; a resumed run batches as the first did, so a
+    recomputed shard holds the same data bit for bit; and a batch larger than a shard is
+    refused before any work."""
+    from datagen.io.reader import DatasetReader
+    from datagen.pipeline.dataset import run_dataset
+
+    recipe = tiny_recipe(tmp_path, n=4)
+    with pytest.raises(InputError) as exc:
+        run_dataset(recipe, tmp_path / "too_big", workers=1, progress=False, batch=3)
+    assert "--batch" in str(exc.value) and "the shard size (2)" in str(exc.value)
+    assert not list((tmp_path / "too_big").glob("shard-*"))
+
+    alone, batched = tmp_path / "alone", tmp_path / "batched"
+    run_dataset(recipe, alone, workers=1, progress=False)
+    run_dataset(recipe, batched, workers=1, progress=False, batch=2)
+    assert errors(batched) == []
+    with DatasetReader(alone) as a, DatasetReader(batched) as b:
+        ids = b.sequence_ids()
+        assert ids == a.sequence_ids() == [f"11-{i:06d}" for i in range(4)]
+        first = {seq: {name: g["vertices"].copy() for name, g in b.garments(seq).items()}
+                 for seq in ids}
+        for seq in ids:
+            assert b.spec(seq).to_json() == a.spec(seq).to_json()
+    reports, sizes = {}, {}
+    for shard in sorted(batched.glob("shard-*.h5")):
+        with h5py.File(shard, "r") as f:
+            for seq, g in f["sequences"].items():
+                reports[seq] = json.loads(g["sim"].attrs["report"])
+                sizes[seq] = reports[seq]["vertices"]
+    for k in range(2):  # shard k: sequences 2k and 2k + 1, one batch
+        pair = [f"11-{i:06d}" for i in (2 * k, 2 * k + 1)]
+        for index, seq in enumerate(pair):
+            assert reports[seq]["batch"] == {"scenes": 2, "index": index, "alone": False,
+                                             "batch_vertices": sizes[pair[0]] + sizes[pair[1]]}
+
+    (batched / "shard-00001.h5").unlink()
+    r = run_cli("dataset", "--pipeline", recipe, "--out", batched, "--workers", "1",
+                "--batch", "2", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    with DatasetReader(batched) as b:
+        for seq in ids:
+            for name, g in b.garments(seq).items():
+                np.testing.assert_array_equal(g["vertices"], first[seq][name])
+
+
+def test_sequences_that_share_no_batch_are_simulated_as_unbatched_ones(tmp_path, body_model):
+    """Sequences whose simulation settings differ cannot share a solver: each is a group of one
+    and is simulated exactly as an unbatched run simulates it, bit for bit."""
+    from dataclasses import replace
+
+    from datagen.pipeline.batched import run_sequences_batched
+    from datagen.pipeline.stages import run_sequence
+    from datagen.recipe import load_recipe
+    from datagen.sampling import sample_scene
+
+    loaded = load_recipe(tiny_recipe(tmp_path, n=2))
+    a, b = sample_scene(loaded, 0), sample_scene(loaded, 1)
+    b = replace(b, simulation=replace(b.simulation, substeps=12))
+    batched = run_sequences_batched([a, b], body_model, loaded.recipe.body, loaded.base_dir)
+    for spec, record in zip([a, b], batched, strict=True):
+        alone = run_sequence(spec, body_model, loaded.recipe.body, loaded.base_dir)
+        assert record.status == alone.status == "ok"
+        assert "batch" not in record.sim.report
+        assert record.sim.report["substeps"] == alone.sim.report["substeps"]
+        for name, vertices in alone.sim.vertices.items():
+            np.testing.assert_array_equal(record.sim.vertices[name], vertices)

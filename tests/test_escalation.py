@@ -159,3 +159,35 @@ def test_the_manifest_says_which_sequences_were_simulated_again(tmp_path):
     rows = {row["index"]: row for row in manifest_rows(tmp_path)}
     assert rows[0]["escalated"] is None
     assert rows[1]["escalated"] == why
+
+
+def test_a_batch_result_is_judged_as_a_run_of_its_own(monkeypatch):
+    """A dataset run's batch (datagen.pipeline.batched) hands each scene's outcome to
+    simulate_within_bounds, which judges it without simulating it again: within the bound it
+    is the batch's result; over it, the scene is simulated again alone one preset up, exactly
+    as an unbatched run would be; a scene the batch rejected is simulated again too."""
+    from datagen.sim.batch import BatchScene, simulate_batch
+
+    garments, track = _sheet_on_sphere(monkeypatch, 0.02)
+    options = SimOptions(settle_seconds=0.0, strain_refinements=0)
+    outcomes = simulate_batch([BatchScene(garments, track)] * 2, options)
+    calls = _counting_simulate(monkeypatch)
+    result = simulate_within_bounds(garments, track, options, first=outcomes[1])
+    assert [c.quality for c in calls] == ["reference"]  # the first run was the batch's
+    assert "batch" not in result.report
+    assert "qa/strain_p999" in result.report["escalated_from"]["reason"]
+    direct = simulate(garments, track, options.escalated())
+    np.testing.assert_array_equal(result.vertices[garments[0].name],
+                                  direct.vertices[garments[0].name])
+
+    monkeypatch.setitem(FABRICS, "cotton", replace(FABRICS["cotton"], max_strain=0.25))
+    calls.clear()
+    kept = simulate_within_bounds(garments, track, options, first=outcomes[1])
+    assert calls == [] and kept is outcomes[1] and kept.report["batch"]["index"] == 1
+
+    unstable = RejectedSequence("simulate", "unstable at frame 3: runaway velocity", (3, 3))
+    again = simulate_within_bounds(garments, track, options, first=unstable)
+    assert [c.quality for c in calls] == ["reference"]
+    assert again.report["escalated_from"] == {
+        "settings": "xpbd default 20x4, sor 1.6",
+        "reason": "unstable at frame 3: runaway velocity", "wall_time_s": None}

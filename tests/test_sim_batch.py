@@ -147,3 +147,20 @@ def test_the_collider_grids_blocked_prefix_sum_is_the_running_total(n_cells):
     expected = np.concatenate([[0], np.cumsum(counts_np)])
     np.testing.assert_array_equal(starts.to_numpy()[: n_cells + 1], expected)
     np.testing.assert_array_equal(counts.to_numpy(), [0] * n_cells + [7, 7, 7])
+
+
+def test_a_batch_whose_lattice_the_grid_cannot_span_is_refused_before_simulating():
+    """The collider's grid is dense over the lattice, and each cell spans its scene's whole
+    motion: two colliders that travel a kilometre diagonally would need billions of cells
+    (int32 indices), so the batch is refused up front, saying what to change."""
+    from datagen.sim.scenes import grid_sheet, icosphere
+    from datagen.sim.simulate import ColliderTrack
+
+    sv, sf = icosphere(0.2, 2)
+    far = np.stack([sv, sv + np.array([1000.0, 1000.0, 0.0])])
+    scene = BatchScene([grid_sheet(4, 0.3, 0.4)], ColliderTrack(far, sf, np.ones(len(sf), bool)))
+    with pytest.raises(InputError) as exc:
+        simulate_batch([scene, scene], OPTIONS)
+    message = str(exc.value)
+    assert "field 'batch'" in message and "fewer scenes at once" in message
+    assert "2 scenes needing up to" in message

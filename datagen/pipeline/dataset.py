@@ -50,22 +50,45 @@ def _worker_state(recipe_path: str) -> dict:
     return state
 
 
+def _templates_dir(loaded: LoadedRecipe) -> Path | None:
+    from datagen.garment.outfit import outfit_config, resolve_templates_dir
+
+    if not loaded.recipe.outfit:
+        return None
+    return resolve_templates_dir(outfit_config(loaded).templates, loaded.base_dir)
+
+
+def _qa_gate(loaded: LoadedRecipe, record):
+    from datagen.pipeline.stages import reject_over_qa_bounds
+
+    return reject_over_qa_bounds(record) if loaded.recipe.simulation.qa == "reject" else record
+
+
 def compute_sequence(recipe_path: str, index: int):
     """Run sequence `index` of the recipe (in any process): a SequenceRecord."""
-    from datagen.garment.outfit import outfit_config, resolve_templates_dir
-    from datagen.pipeline.stages import reject_over_qa_bounds, run_sequence
+    from datagen.pipeline.stages import run_sequence
     from datagen.sampling import sample_scene
 
     state = _worker_state(recipe_path)
     loaded: LoadedRecipe = state["loaded"]
-    spec = sample_scene(loaded, index)
-    templates = None
-    if loaded.recipe.outfit:
-        templates = resolve_templates_dir(outfit_config(loaded).templates, loaded.base_dir)
-    record = run_sequence(spec, state["model"], loaded.recipe.body, loaded.base_dir, templates)
-    if loaded.recipe.simulation.qa == "reject":
-        record = reject_over_qa_bounds(record)
-    return record
+    record = run_sequence(sample_scene(loaded, index), state["model"], loaded.recipe.body,
+                          loaded.base_dir, _templates_dir(loaded))
+    return _qa_gate(loaded, record)
+
+
+def compute_sequences(recipe_path: str, indices: list[int]) -> list:
+    """Run sequences `indices` of the recipe (in any process), their simulations batched
+    (datagen.pipeline.batched) where there are several: their SequenceRecords in order."""
+    if len(indices) == 1:
+        return [compute_sequence(recipe_path, indices[0])]
+    from datagen.pipeline.batched import run_sequences_batched
+    from datagen.sampling import sample_scene
+
+    state = _worker_state(recipe_path)
+    loaded: LoadedRecipe = state["loaded"]
+    records = run_sequences_batched([sample_scene(loaded, i) for i in indices], state["model"],
+                                    loaded.recipe.body, loaded.base_dir, _templates_dir(loaded))
+    return [_qa_gate(loaded, r) for r in records]
 
 
 # -- the output folder -------------------------------------------------------------------------
@@ -252,14 +275,19 @@ def check_recipe_clips(loaded: LoadedRecipe) -> None:
 
 def run_dataset(recipe_path: str | Path, out: str | Path, n: int | None = None,
                 workers: int = 1, scheduler: str | None = None, shard_size: int | None = None,
-                progress: bool = True) -> list[dict]:
-    """Run (or resume) a dataset; returns the manifest rows."""
+                progress: bool = True, batch: int = 1) -> list[dict]:
+    """Run (or resume) a dataset; returns the manifest rows. `batch`: sequences a worker
+    simulates at once (datagen.pipeline.batched; for GPUs, where one scene is launch-bound)."""
     recipe_path = str(Path(recipe_path).resolve())
     loaded = load_recipe(recipe_path)
     n = loaded.recipe.sequences if n is None else n
     if n < 0:
         raise InputError(None, "--n", "0 or more sequences", n)
     size = shard_size or loaded.recipe.storage.shard_size
+    if not 1 <= batch <= size:
+        raise InputError(None, "--batch", f"1 to the shard size ({size}) sequences a batch: "
+                         "batches never span shards, so a resumed run batches as the first "
+                         "did (raise --shard-size for larger batches)", batch)
     state = prepare_output(Path(out), loaded, size, n)
     # Sample every spec up front: bad recipe values fail here, before any work is spent.
     from datagen.sampling import sample_scene
@@ -297,14 +325,19 @@ def run_dataset(recipe_path: str | Path, out: str | Path, n: int | None = None,
             del waiting[k]
             write_manifest(state.out)
 
+    # Each shard's sequences in batches of consecutive indices: the same batches whichever
+    # shards a resumed run finds done, so the same seed gives the same data.
+    chunks = [list(state.indices(k))[i:i + batch]
+              for k in pending for i in range(0, len(state.indices(k)), batch)]
     try:
         if scheduler:
-            _run_dask(scheduler, recipe_path, todo, finish)
+            _run_dask(scheduler, recipe_path, chunks, finish)
         elif workers <= 1:
-            for index in todo:
-                finish(compute_sequence(recipe_path, index))
+            for chunk in chunks:
+                for record in compute_sequences(recipe_path, chunk):
+                    finish(record)
         else:
-            _run_processes(workers, recipe_path, todo, finish)
+            _run_processes(workers, recipe_path, chunks, finish)
     finally:
         if bar is not None:
             bar.close()
@@ -314,26 +347,28 @@ def run_dataset(recipe_path: str | Path, out: str | Path, n: int | None = None,
     return rows
 
 
-def _run_processes(workers: int, recipe_path: str, todo: list[int], finish) -> None:
+def _run_processes(workers: int, recipe_path: str, chunks: list[list[int]], finish) -> None:
     import multiprocessing
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     ctx = multiprocessing.get_context("spawn")  # no fork: Taichi and torch hold threads
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-        queue = list(todo)
+        queue = list(chunks)
         running = set()
         while queue or running:
             while queue and len(running) < 2 * workers:  # a short queue keeps memory flat
-                running.add(pool.submit(compute_sequence, recipe_path, queue.pop(0)))
+                running.add(pool.submit(compute_sequences, recipe_path, queue.pop(0)))
             finished, running = wait(running, return_when=FIRST_COMPLETED)
             for fut in finished:
-                finish(fut.result())
+                for record in fut.result():
+                    finish(record)
 
 
-def _run_dask(address: str, recipe_path: str, todo: list[int], finish) -> None:
+def _run_dask(address: str, recipe_path: str, chunks: list[list[int]], finish) -> None:
     from distributed import Client, as_completed
 
     with Client(address) as client:
-        futures = [client.submit(compute_sequence, recipe_path, i, pure=False) for i in todo]
+        futures = [client.submit(compute_sequences, recipe_path, c, pure=False) for c in chunks]
         for fut in as_completed(futures):
-            finish(fut.result())
+            for record in fut.result():
+                finish(record)

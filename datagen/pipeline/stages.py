@@ -92,21 +92,29 @@ def run_sequence(
                                                     sim_options_from_spec(spec, fabrics))
                 record.timings["simulate"] = time.perf_counter() - t
     except RejectedSequence as exc:
-        record.status = "rejected"
-        record.stage, record.reason, record.frames = exc.stage, exc.reason, exc.frames
-        record.body = record.garments = record.sim = None
+        mark_rejected(record, exc)
     return record
 
 
+def mark_rejected(record: SequenceRecord, exc: RejectedSequence) -> None:
+    """Turn a record into the rejection `exc` names (its data dropped, its timings kept)."""
+    record.status = "rejected"
+    record.stage, record.reason, record.frames = exc.stage, exc.reason, exc.frames
+    record.body = record.garments = record.sim = None
+
+
 def simulate_within_bounds(garments: list[Garment], body: BodySequence | ColliderTrack | None,
-                           options: SimOptions) -> SimResult:
+                           options: SimOptions,
+                           first: SimResult | RejectedSequence | None = None) -> SimResult:
     """Simulate the garments; a run that breaks a physical-validity bound (datagen.qa) or is
     rejected as unstable is simulated once more at SimOptions.escalated() (the next quality
     preset up, plain sweeps), and that run is the result. Only the sequences that need it pay
     for the finer steps: the fast kick's trousers break the strain bound at `default` 20x4
     in one frame of the kick (a chaotic frame: more substeps for that frame alone do not help),
     and pass at 40x8 (docs/simulator.md, "Escalation"). The result's report names the first
-    run's settings and why it was not kept (`escalated_from`); a second rejection says both."""
+    run's settings and why it was not kept (`escalated_from`); a second rejection says both.
+    `first`: the first run's outcome where it was simulated already (in a batch,
+    datagen.pipeline.batched), which is then judged instead of simulating again."""
     from datagen import qa
     from datagen.sim.simulate import simulate
 
@@ -114,7 +122,9 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
     up = options.escalated()
     first_wall = None
     try:
-        sim = simulate(garments, body, options)
+        if isinstance(first, RejectedSequence):
+            raise first
+        sim = simulate(garments, body, options) if first is None else first
     except RejectedSequence as exc:
         if up is None or exc.stage != "simulate":
             raise

@@ -23,16 +23,19 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from datagen.errors import InputError, RejectedSequence
+from datagen.sim.collider import GRID_CELL, MAX_GRID_CELLS
 from datagen.sim.effects import resolve_effects
 from datagen.sim.fabrics import get_fabric
 from datagen.sim.simulate import (
     ColliderTrack,
     SimOptions,
+    body_start_transform,
     scene_content,
     simulate,
     simulate_parts,
+    track_of,
 )
-from datagen.types import Garment, SimResult
+from datagen.types import BodySequence, Garment, SimResult
 
 # Horizontal room (m) added to the widest scene's box to make a lattice cell: a scene's cloth
 # may leave its own box (a skirt flaring out in a spin) by up to half of it, less SEPARATION.
@@ -61,6 +64,15 @@ class BatchLayout:
 
     offsets: np.ndarray  # (N, 3)
     cells: np.ndarray  # (N, 2, 2): per scene, (x, y) low and (x, y) high
+
+
+def body_scene(garments: list[Garment], body: BodySequence) -> BatchScene:
+    """Garments fitted to a body sequence's rest body as a batch scene: moved with the body to
+    where its sequence starts, as `simulate` moves them, on the body's collider track."""
+    rot, shift = body_start_transform(body)
+    moved = [replace(g, vertices=np.asarray(g.vertices, dtype=np.float64) @ rot.T + shift)
+             for g in garments]
+    return BatchScene(moved, track_of(body))
 
 
 def scene_box(scene: BatchScene) -> tuple[np.ndarray, np.ndarray]:
@@ -94,6 +106,38 @@ def lay_out(scenes: list[BatchScene], margin: float = BATCH_MARGIN) -> BatchLayo
     return BatchLayout(offsets, cells)
 
 
+TIMELINE = ("fps", "n_frames", "lead_in_frames")  # what every scene of a batch shares
+
+
+def shared_effects(scene: BatchScene, options: SimOptions) -> list[str]:
+    """The effects a scene resolves to that act on every vertex: those must be the same for
+    every scene of a batch (ELEMENT_EFFECTS may differ)."""
+    fabrics = [get_fabric(g.fabric, options.fabrics) for g in scene.garments]
+    content = scene_content(scene.garments, True, options.wind, fabrics)
+    return [e for e in resolve_effects(options.effects, content).enabled()
+            if e not in ELEMENT_EFFECTS]
+
+
+def batchable_groups(scenes: list[BatchScene], options: SimOptions) -> list[list[int]]:
+    """The scenes split into groups that can each be one batch (the same timeline and the same
+    shared effects), as indices in the given order; groups in the order of their first scene."""
+    groups: dict[tuple, list[int]] = {}
+    for k, scene in enumerate(scenes):
+        key = (tuple(getattr(scene.track, f) for f in TIMELINE),
+               tuple(shared_effects(scene, options)))
+        groups.setdefault(key, []).append(k)
+    return list(groups.values())
+
+
+def lattice_grid_cells(scenes: list[BatchScene], layout: BatchLayout) -> int:
+    """How many cells the collider's grid spans when every scene's body is at a far corner of
+    its cell: the lattice's area times the tallest scene's height, in GRID_CELL cubes. The grid
+    is dense, so a batch of long walks (each cell as long as its walk) needs many."""
+    heights = [hi[2] - lo[2] for lo, hi in (scene_box(s) for s in scenes)]
+    extent = layout.cells[:, 1].max(axis=0) - layout.cells[:, 0].min(axis=0)
+    return int(np.prod(np.ceil(np.append(extent, max(heights)) / GRID_CELL + 2)))
+
+
 def _check(scenes: list[BatchScene], options: SimOptions) -> None:
     """Scenes that cannot share a solver are refused, naming the first that differs from
     scene 0 and how."""
@@ -108,15 +152,12 @@ def _check(scenes: list[BatchScene], options: SimOptions) -> None:
         if len(set(names)) != len(names):
             raise InputError(None, f"scenes[{k}].garments", "unique garment names", names)
         track = scene.track
-        for field in ("fps", "n_frames", "lead_in_frames"):
+        for field in TIMELINE:
             if getattr(track, field) != getattr(first, field):
                 raise InputError(None, f"scenes[{k}].track.{field}",
                                  f"{getattr(first, field)}, as scene 0's (one timeline a batch)",
                                  getattr(track, field))
-        fabrics = [get_fabric(g.fabric, options.fabrics) for g in scene.garments]
-        content = scene_content(scene.garments, True, options.wind, fabrics)
-        enabled = resolve_effects(options.effects, content).enabled()
-        effects.append([e for e in enabled if e not in ELEMENT_EFFECTS])
+        effects.append(shared_effects(scene, options))
         if effects[k] != effects[0]:
             raise InputError(None, f"scenes[{k}] effects",
                              f"scene 0's {effects[0]} (one solver runs the effects that act on "
@@ -164,6 +205,12 @@ def simulate_batch(scenes: list[BatchScene], options: SimOptions | None = None,
     options = options or SimOptions()
     _check(scenes, options)
     layout = lay_out(scenes, margin)
+    cells = lattice_grid_cells(scenes, layout)
+    if cells > MAX_GRID_CELLS:
+        raise InputError(None, "batch",
+                         f"a lattice the collider's grid can span (at most {MAX_GRID_CELLS} "
+                         f"cells of {GRID_CELL} m): fewer scenes at once, or scenes that travel "
+                         "less", f"{len(scenes)} scenes needing up to {cells} cells")
     garments, track, parts = _joined(scenes, layout)
     why = None
     try:

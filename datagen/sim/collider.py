@@ -9,6 +9,7 @@ import itertools
 import numpy as np
 import taichi as ti
 
+from datagen.errors import InputError
 from datagen.sim import kernels as K
 from datagen.sim.backend import init_taichi, serial
 from datagen.sim.precision import NP_REAL, REAL, VEC3
@@ -48,13 +49,18 @@ def face_adjacency(faces: np.ndarray, mask: np.ndarray) -> np.ndarray:
 # Grid numbers, unique across the colliders of a process (a retry solver is handed the guards
 # that another solver's collider proved), and exact as float32 (2**24 grids before they repeat).
 _GRID_TAGS = (1 + k % (2**24 - 1) for k in itertools.count())
+# Edge (m) of the grid's cells, and the most cells a grid may have: the kernels index cells
+# with int32, and the arrays are allocated half again as large. One body spans about 10^5
+# cells; a batch's lattice (datagen.sim.batch) spans every scene's whole motion.
+GRID_CELL = 0.025
+MAX_GRID_CELLS = 2**30
 
 
 class BodyCollider:
     """Holds the body's frames on the device; one instance per scene."""
 
     def __init__(
-        self, faces: np.ndarray, face_mask: np.ndarray, n_vertices: int, cell: float = 0.025,
+        self, faces: np.ndarray, face_mask: np.ndarray, n_vertices: int, cell: float = GRID_CELL,
         normals: bool = True,
     ) -> None:
         init_taichi()
@@ -136,6 +142,10 @@ class BodyCollider:
         hi = np.maximum(p0.max(axis=0), p1.max(axis=0)) + self.cell
         dims = np.maximum(np.ceil((hi - lo) / self.cell).astype(np.int64), 1)
         n_cells = int(np.prod(dims))
+        if n_cells > MAX_GRID_CELLS:
+            raise InputError(None, "collider extent",
+                             f"at most {MAX_GRID_CELLS} grid cells of {self.cell} m",
+                             f"{n_cells} ({' x '.join(f'{e:.1f}' for e in hi - lo)} m)")
         if n_cells + 1 > self._n_cells_alloc:
             self._n_cells_alloc = int((n_cells + 1) * 1.5)
             self.counts = ti.ndarray(ti.i32, self._n_cells_alloc)
