@@ -7,7 +7,7 @@ Usage: python tests/parallel_sweeps.py MODE OUT.npz, MODE one of
   coloured  coloured sweeps on one thread (serial() overridden)
   threads   coloured sweeps on two threads (DATAGEN_TI_THREADS=2 set by the caller), and
             test_sim_batch's three scenes batched, against each simulated alone where the
-            batch put it
+            batch put it and against the batch on a hashed body grid
 """
 
 from __future__ import annotations
@@ -53,9 +53,11 @@ def main(mode: str, out: str) -> None:
                         SimOptions(solver="explicit", substeps=400, iterations=1, frames=4,
                                    settle_seconds=0.0, strain_refinements=0))
     batch_gaps = _batch_gaps() if mode == "threads" else []
+    hashed_gaps = _hashed_gaps() if mode == "threads" else []
     np.savez(
         out,
         batch_gaps=batch_gaps,
+        hashed_gaps=hashed_gaps,
         explicit=explicit.vertices[short.garments[0].name],
         layers=np.concatenate([layered.vertices["inner"], layered.vertices["outer"]], axis=1),
         layers_faces=inner.faces,
@@ -78,6 +80,24 @@ def _batch_gaps() -> list[float]:
     rows = batched_against_alone(batch_scenes())
     assert not any(result.report["batch"]["alone"] for result, _, _ in rows)
     return [gap for _, _, gap in rows]
+
+
+def _hashed_gaps() -> list[float]:
+    """Per scene of test_sim_batch's batch, the largest distance in any frame between its run
+    on a hashed body grid (forced, one bucket per triangle: cells share buckets, filled by
+    parallel threads) and on the dense one."""
+    from test_sim_batch import OPTIONS, batch_scenes
+
+    from datagen.sim import collider
+    from datagen.sim.batch import simulate_batch
+
+    scenes = batch_scenes()
+    dense = simulate_batch(scenes, OPTIONS)
+    collider.DENSE_GRID_CELLS, collider.HASH_BUCKETS_PER_TRIANGLE = 0, 1
+    hashed = simulate_batch(scenes, OPTIONS)
+    names = [s.garments[0].name for s in scenes]
+    return [float(np.abs(a.vertices[n] - b.vertices[n]).max())
+            for n, a, b in zip(names, dense, hashed, strict=True)]
 
 
 if __name__ == "__main__":

@@ -789,6 +789,11 @@ def test_coloured_sweeps_on_two_threads_equal_one_thread_and_stay_physical(tmp_p
     # scenes gives each scene its own colours, so every scene is bit for bit its solo run at the
     # batch's place (tests/test_sim_batch.py checks the serial path).
     assert runs["threads"]["batch_gaps"].tolist() == [0.0, 0.0, 0.0]
+    # The same batch on a hashed body grid (filled by threads, its buckets sorted): the tubes
+    # bit for bit, the sheet (ties between equally near sphere triangles broken by index)
+    # within microns, as on the serial path (tests/test_sim_batch.py).
+    tube_a, tube_b, sheet_gap = runs["threads"]["hashed_gaps"].tolist()
+    assert tube_a == tube_b == 0.0 and sheet_gap < 2e-5, runs["threads"]["hashed_gaps"]
     # The explicit solver's gathered forces are its scattered ones to rounding: its tube after
     # 4 frames is where the serial run's is (the sweeps' presets do not apply to it).
     gap = np.abs(runs["threads"]["explicit"] - runs["serial"]["explicit"]).max()

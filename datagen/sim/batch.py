@@ -23,7 +23,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from datagen.errors import InputError, RejectedSequence
-from datagen.sim.collider import GRID_CELL, MAX_GRID_CELLS
 from datagen.sim.effects import resolve_effects
 from datagen.sim.fabrics import get_fabric
 from datagen.sim.simulate import (
@@ -129,15 +128,6 @@ def batchable_groups(scenes: list[BatchScene], options: SimOptions) -> list[list
     return list(groups.values())
 
 
-def lattice_grid_cells(scenes: list[BatchScene], layout: BatchLayout) -> int:
-    """How many cells the collider's grid spans when every scene's body is at a far corner of
-    its cell: the lattice's area times the tallest scene's height, in GRID_CELL cubes. The grid
-    is dense, so a batch of long walks (each cell as long as its walk) needs many."""
-    heights = [hi[2] - lo[2] for lo, hi in (scene_box(s) for s in scenes)]
-    extent = layout.cells[:, 1].max(axis=0) - layout.cells[:, 0].min(axis=0)
-    return int(np.prod(np.ceil(np.append(extent, max(heights)) / GRID_CELL + 2)))
-
-
 def _check(scenes: list[BatchScene], options: SimOptions) -> None:
     """Scenes that cannot share a solver are refused, naming the first that differs from
     scene 0 and how."""
@@ -205,12 +195,6 @@ def simulate_batch(scenes: list[BatchScene], options: SimOptions | None = None,
     options = options or SimOptions()
     _check(scenes, options)
     layout = lay_out(scenes, margin)
-    cells = lattice_grid_cells(scenes, layout)
-    if cells > MAX_GRID_CELLS:
-        raise InputError(None, "batch",
-                         f"a lattice the collider's grid can span (at most {MAX_GRID_CELLS} "
-                         f"cells of {GRID_CELL} m): fewer scenes at once, or scenes that travel "
-                         "less", f"{len(scenes)} scenes needing up to {cells} cells")
     garments, track, parts = _joined(scenes, layout)
     why = None
     try:

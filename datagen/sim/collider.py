@@ -1,6 +1,6 @@
 """The moving body as a collider: triangles (masked to the parts a garment can reach), their
-edge adjacency for surface tracking, per-frame vertex normals, and a uniform grid for the global
-closest-triangle search."""
+edge adjacency for surface tracking, per-frame vertex normals, and a uniform grid (dense, or
+hashed where a batch's lattice would make it large) for the global closest-triangle search."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ import itertools
 import numpy as np
 import taichi as ti
 
-from datagen.errors import InputError
 from datagen.sim import kernels as K
 from datagen.sim.backend import init_taichi, serial
 from datagen.sim.precision import NP_REAL, REAL, VEC3
@@ -49,11 +48,14 @@ def face_adjacency(faces: np.ndarray, mask: np.ndarray) -> np.ndarray:
 # Grid numbers, unique across the colliders of a process (a retry solver is handed the guards
 # that another solver's collider proved), and exact as float32 (2**24 grids before they repeat).
 _GRID_TAGS = (1 + k % (2**24 - 1) for k in itertools.count())
-# Edge (m) of the grid's cells, and the most cells a grid may have: the kernels index cells
-# with int32, and the arrays are allocated half again as large. One body spans about 10^5
-# cells; a batch's lattice (datagen.sim.batch) spans every scene's whole motion.
+# Edge (m) of the grid's cells. A grid spanning more cells than DENSE_GRID_CELLS is hashed
+# (kernels.grid_cell): one body spans about 10^5 cells, but a batch's lattice
+# (datagen.sim.batch) spans every scene's whole motion, and 64 scenes of 10 s walks would need
+# 1.4 billion dense cells (11 GB of counts and offsets, past int32 indices). A hashed grid has
+# HASH_BUCKETS_PER_TRIANGLE buckets per colliding triangle (a power of two), whatever the extent.
 GRID_CELL = 0.025
-MAX_GRID_CELLS = 2**30
+DENSE_GRID_CELLS = 2**22
+HASH_BUCKETS_PER_TRIANGLE = 8
 
 
 class BodyCollider:
@@ -142,10 +144,11 @@ class BodyCollider:
         hi = np.maximum(p0.max(axis=0), p1.max(axis=0)) + self.cell
         dims = np.maximum(np.ceil((hi - lo) / self.cell).astype(np.int64), 1)
         n_cells = int(np.prod(dims))
-        if n_cells > MAX_GRID_CELLS:
-            raise InputError(None, "collider extent",
-                             f"at most {MAX_GRID_CELLS} grid cells of {self.cell} m",
-                             f"{n_cells} ({' x '.join(f'{e:.1f}' for e in hi - lo)} m)")
+        self.hashed = n_cells > DENSE_GRID_CELLS
+        if self.hashed:
+            wanted = HASH_BUCKETS_PER_TRIANGLE * max(int(self.mask_np.sum()), 512)
+            n_cells = 1 << (wanted - 1).bit_length()
+            dims = np.array([0, n_cells - 1, 0], dtype=np.int64)  # kernels.grid_cell
         if n_cells + 1 > self._n_cells_alloc:
             self._n_cells_alloc = int((n_cells + 1) * 1.5)
             self.counts = ti.ndarray(ti.i32, self._n_cells_alloc)

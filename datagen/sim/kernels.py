@@ -1120,6 +1120,34 @@ def first_cell(lo: vec3, origin: vec3, inv_cell: REAL) -> ti.math.ivec3:
     return ti.max(ti.cast(ti.floor((lo - origin) * inv_cell), ti.i32), 0)
 
 
+# The body grid is dense (`dims` cells along x, y, z) where that is small, which a body alone
+# always is; a batch's lattice (datagen.sim.batch) spans every scene's motion and is hashed
+# instead: dims = (0, table size - 1, 0), each cell's triangles in the bucket its coordinates
+# hash to (hash_cell), shared with whatever other cells hash there. A search then also meets
+# triangles of other cells, which its distance bounds cull.
+@ti.func
+def last_cell(hi: vec3, origin: vec3, inv_cell: REAL, dims: ti.math.ivec3) -> ti.math.ivec3:
+    """The highest grid cell of a box whose high corner is `hi` (within a dense grid)."""
+    c = ti.cast(ti.floor((hi - origin) * inv_cell), ti.i32)
+    if dims[0] > 0:
+        c = ti.min(c, dims - 1)
+    return c
+
+
+@ti.func
+def grid_cell(c: ti.math.ivec3, dims: ti.math.ivec3) -> ti.i32:
+    """Where cell c's triangles are listed: its index in a dense grid (-1 outside it), or its
+    hash bucket."""
+    cid = -1
+    if dims[0] > 0:
+        if (c[0] >= 0 and c[1] >= 0 and c[2] >= 0 and c[0] < dims[0] and c[1] < dims[1]
+                and c[2] < dims[2]):
+            cid = (c[0] * dims[1] + c[1]) * dims[2] + c[2]
+    else:
+        cid = hash_cell(c, dims[1])
+    return cid
+
+
 @ti.kernel
 def grid_count(
     b0: V3,
@@ -1149,11 +1177,11 @@ def grid_count(
             speed = ti.max(travel[f[0]], travel[f[1]], travel[f[2]])
             tbox[t] = GUARD(lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], speed, 0.0)
             c0 = first_cell(lo, origin, inv_cell)
-            c1 = ti.min(ti.cast(ti.floor((hi - origin) * inv_cell), ti.i32), dims - 1)
+            c1 = last_cell(hi, origin, inv_cell, dims)
             for cx in range(c0[0], c1[0] + 1):
                 for cy in range(c0[1], c1[1] + 1):
                     for cz in range(c0[2], c1[2] + 1):
-                        ti.atomic_add(counts[(cx * dims[1] + cy) * dims[2] + cz], 1)
+                        ti.atomic_add(counts[grid_cell(ti.math.ivec3(cx, cy, cz), dims)], 1)
 
 
 # Cells per block of the grid's prefix sum: blocks are summed in parallel, their sums prefixed
@@ -1225,11 +1253,11 @@ def grid_fill(
             lo = vec3(tb[0], tb[1], tb[2])
             hi = vec3(tb[3], tb[4], tb[5])
             c0 = first_cell(lo, origin, inv_cell)
-            c1 = ti.min(ti.cast(ti.floor((hi - origin) * inv_cell), ti.i32), dims - 1)
+            c1 = last_cell(hi, origin, inv_cell, dims)
             for cx in range(c0[0], c1[0] + 1):
                 for cy in range(c0[1], c1[1] + 1):
                     for cz in range(c0[2], c1[2] + 1):
-                        cell = (cx * dims[1] + cy) * dims[2] + cz
+                        cell = grid_cell(ti.math.ivec3(cx, cy, cz), dims)
                         slot = ti.atomic_add(counts[cell], 1)
                         items[starts[cell] + slot] = t
 
@@ -1327,15 +1355,8 @@ def nearest_one(
         fastest = ti.cast(0.0, REAL)
         for nb in range(27):  # a dynamic loop: unrolling 27 copies makes compiles slow
             c = cell + ti.math.ivec3(nb // 9 - 1, (nb // 3) % 3 - 1, nb % 3 - 1)
-            if (
-                c[0] >= 0
-                and c[1] >= 0
-                and c[2] >= 0
-                and c[0] < dims[0]
-                and c[1] < dims[1]
-                and c[2] < dims[2]
-            ):
-                cid = (c[0] * dims[1] + c[1]) * dims[2] + c[2]
+            cid = grid_cell(c, dims)
+            if cid >= 0:
                 for q in range(starts[cid], starts[cid + 1]):
                     t = items[q]
                     tb = tbox[t]
@@ -1362,7 +1383,9 @@ def nearest_one(
                         box = ti.max(ti.min(a, b, cc) - p, 0.0, p - ti.max(a, b, cc))
                         if box.norm_sqr() <= bound:
                             r = closest_on_triangle(p, a, b, cc)
-                            if r[3] < best:
+                            # Of equally near triangles a dense grid keeps the first scanned; a
+                            # hashed one scans in another order, so it keeps the lowest index.
+                            if r[3] < best or (dims[0] == 0 and r[3] == best and t < best_t):
                                 best = r[3]
                                 best_t = t
                                 reach = ti.sqrt(best) + 1e-6
