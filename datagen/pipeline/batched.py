@@ -15,10 +15,9 @@ never which bounds it meets.
 
 from __future__ import annotations
 
-import json
 import time
-from dataclasses import asdict
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from datagen.errors import RejectedSequence
 from datagen.pipeline.stages import (
@@ -29,7 +28,10 @@ from datagen.pipeline.stages import (
     simulate_within_bounds,
 )
 from datagen.recipe import BodyConfig
-from datagen.spec import SceneSpec
+from datagen.spec import SceneSpec, SimSpec
+
+if TYPE_CHECKING:
+    from datagen.sim.simulate import SimOptions
 
 
 def run_sequences_batched(specs: list[SceneSpec], body_model,
@@ -42,16 +44,15 @@ def run_sequences_batched(specs: list[SceneSpec], body_model,
     records = [run_sequence(spec, body_model, body_config, base_dir, templates_dir,
                             simulate_cloth=False, fabrics=fabrics) for spec in specs]
     to_simulate = [r for r in records if r.status == "ok" and r.garments]
-    by_settings: dict[str, list[SequenceRecord]] = {}
+    by_settings: dict[SimSpec, list[SequenceRecord]] = {}
     for record in to_simulate:
-        key = json.dumps(asdict(record.spec.simulation), sort_keys=True, default=str)
-        by_settings.setdefault(key, []).append(record)
+        by_settings.setdefault(record.spec.simulation, []).append(record)
     for same_settings in by_settings.values():
         _simulate_together(same_settings, sim_options_from_spec(same_settings[0].spec, fabrics))
     return records
 
 
-def _simulate_together(records: list[SequenceRecord], options) -> None:
+def _simulate_together(records: list[SequenceRecord], options: SimOptions) -> None:
     from datagen.sim.batch import batchable_groups, body_scene, simulate_batch
 
     scenes = [body_scene(r.garments, r.body) for r in records]

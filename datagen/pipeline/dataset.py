@@ -327,7 +327,7 @@ def run_dataset(recipe_path: str | Path, out: str | Path, n: int | None = None,
 
     # Each shard's sequences in batches of consecutive indices: the same batches whichever
     # shards a resumed run finds done, so the same seed gives the same data.
-    chunks = [list(state.indices(k))[i:i + batch]
+    chunks = [list(state.indices(k)[i:i + batch])
               for k in pending for i in range(0, len(state.indices(k)), batch)]
     try:
         if scheduler:
