@@ -73,6 +73,9 @@ class BodyCollider:
         # The body vertices of the colliding faces: the grid spans them (indexing every face
         # corner of a 27k-face body each frame cost a walking t-shirt 8 ms a frame).
         self.used_vertices = np.unique(self.faces_np[self.mask_np])
+        # A hashed grid's buckets: a power of two, HASH_BUCKETS_PER_TRIANGLE per colliding face.
+        wanted = HASH_BUCKETS_PER_TRIANGLE * max(int(self.mask_np.sum()), 512)
+        self.hash_buckets = 1 << (wanted - 1).bit_length()
         self.n_vertices = n_vertices
         self.cell = cell
         self.faces = ti.ndarray(ti.math.ivec3, len(self.faces_np))
@@ -146,8 +149,7 @@ class BodyCollider:
         n_cells = int(np.prod(dims))
         self.hashed = n_cells > DENSE_GRID_CELLS
         if self.hashed:
-            wanted = HASH_BUCKETS_PER_TRIANGLE * max(int(self.mask_np.sum()), 512)
-            n_cells = 1 << (wanted - 1).bit_length()
+            n_cells = self.hash_buckets
             dims = np.array([0, n_cells - 1, 0], dtype=np.int64)  # kernels.grid_cell
         if n_cells + 1 > self._n_cells_alloc:
             self._n_cells_alloc = int((n_cells + 1) * 1.5)

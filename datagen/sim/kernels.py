@@ -222,8 +222,9 @@ def spring_delta(
         alpha = comp_t[e]
         if c < 0.0:
             alpha = comp_c[e]
-        alpha /= h * h
-        gamma = beta[e] / h
+        inv_h = 1.0 / h
+        alpha *= inv_h * inv_h
+        gamma = beta[e] * inv_h
         rate = n.dot((x[j] - xp[j]) - (x[i] - xp[i]))
         dl = omega * (-c - alpha * lam[e] - gamma * rate) / ((1.0 + gamma) * wsum + alpha)
         move = dl
@@ -464,8 +465,9 @@ def bend_delta(
     )
     out = vec3(0.0)
     if wsum > 0.0:
-        alpha = comp[b] / (h * h)
-        gamma = beta[b] / h
+        inv_h = 1.0 / h
+        alpha = comp[b] * (inv_h * inv_h)
+        gamma = beta[b] * inv_h
         rate = (
             k[0] * (x[s[0]] - xp[s[0]])
             + k[1] * (x[s[1]] - xp[s[1]])
