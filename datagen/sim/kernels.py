@@ -203,7 +203,7 @@ def spring_delta(
     beta: F1,
     lam: F1,
     e: ti.i32,
-    h: REAL,
+    inv_h: REAL,
     omega: REAL,
 ) -> VEC4:
     """XPBD update of spring e: (displacement along n, dlambda) with n from x_i to x_j, the
@@ -222,7 +222,6 @@ def spring_delta(
         alpha = comp_t[e]
         if c < 0.0:
             alpha = comp_c[e]
-        inv_h = 1.0 / h
         alpha *= inv_h * inv_h
         gamma = beta[e] * inv_h
         rate = n.dot((x[j] - xp[j]) - (x[i] - xp[i]))
@@ -257,10 +256,10 @@ def spring_gs_one(
     comp_c: F1,
     beta: F1,
     lam: F1,
-    h: REAL,
+    inv_h: REAL,
     omega: REAL,
 ):
-    r = spring_delta(x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, e, h, omega)
+    r = spring_delta(x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, e, inv_h, omega)
     lam[e] += r[3]
     i = springs[e][0]
     j = springs[e][1]
@@ -286,10 +285,11 @@ def springs_gauss_seidel(
     omega: REAL,
 ):
     n_springs = springs.shape[0]
+    inv_h = 1.0 / h
     ti.loop_config(serialize=True)
     for k in range(n_springs):
         e = sweep_order(k, n_springs, reverse)
-        spring_gs_one(e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, h, omega)
+        spring_gs_one(e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, inv_h, omega)
 
 
 @ti.kernel
@@ -451,7 +451,8 @@ def moved_by_limit(q: ti.i32, nv: ti.i32, lists: I1) -> ti.i32:
 
 @ti.func
 def bend_delta(
-    x: V3, xp: V3, w: F1, bends: I4, kw: V4, comp: F1, beta: F1, lam_b: V3, b: ti.i32, h: REAL
+    x: V3, xp: V3, w: F1, bends: I4, kw: V4, comp: F1, beta: F1, lam_b: V3, b: ti.i32,
+    inv_h: REAL,
 ) -> vec3:
     """XPBD update of the (linear, vector-valued) bending constraint b: its dlambda."""
     s = bends[b]
@@ -465,7 +466,6 @@ def bend_delta(
     )
     out = vec3(0.0)
     if wsum > 0.0:
-        inv_h = 1.0 / h
         alpha = comp[b] * (inv_h * inv_h)
         gamma = beta[b] * inv_h
         rate = (
@@ -489,10 +489,10 @@ def bend_gs_one(
     comp: F1,
     beta: F1,
     lam_b: V3,
-    h: REAL,
+    inv_h: REAL,
     omega: REAL,
 ):
-    dl = omega * bend_delta(x, xp, w, bends, kw, comp, beta, lam_b, b, h)
+    dl = omega * bend_delta(x, xp, w, bends, kw, comp, beta, lam_b, b, inv_h)
     lam_b[b] += dl
     s = bends[b]
     k = kw[b]
@@ -522,12 +522,13 @@ def bends_gauss_seidel(
     n = bends.shape[0]
     if ti.static(only_listed):
         n = n_listed
+    inv_h = 1.0 / h
     ti.loop_config(serialize=True)
     for m in range(n):
         b = sweep_order(m, n, reverse)
         if ti.static(only_listed):
             b = listed[b]
-        bend_gs_one(b, x, xp, w, bends, kw, comp, beta, lam_b, h, omega)
+        bend_gs_one(b, x, xp, w, bends, kw, comp, beta, lam_b, inv_h, omega)
 
 
 # Coloured Gauss-Seidel (parallel backends): the elements of a sweep are grouped by colour, no
@@ -571,7 +572,7 @@ def springs_coloured(
         r = colour_range(c, n_colours, reverse, colour_ptr)
         for k in range(r[0], r[1]):
             spring_gs_one(order[k], x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam,
-                          h, omega)
+                          1.0 / h, omega)
 
 
 @ti.kernel
@@ -596,7 +597,7 @@ def bends_coloured(
     for c in ti.static(range(n_colours)):
         r = colour_range(c, n_colours, reverse, colour_ptr)
         for k in range(r[0], r[1]):
-            bend_gs_one(order[k], x, xp, w, bends, kw, comp, beta, lam_b, h, omega)
+            bend_gs_one(order[k], x, xp, w, bends, kw, comp, beta, lam_b, 1.0 / h, omega)
 
 
 @ti.kernel
@@ -1571,6 +1572,7 @@ def xpbd_frame(
     a Python round trip per kernel. Its 64 non-template arguments are Taichi's limit on x64: a
     new array has to share one with another (as `adj` and `lists` pack several)."""
     h = P[P_H]
+    inv_h = 1.0 / h  # the sweeps scale compliance and damping by it, never dividing by h
     omega = P[P_OMEGA]
     omega_reverse = P[P_OMEGA_REVERSE]
     recover = P[P_RECOVER]
@@ -1639,7 +1641,7 @@ def xpbd_frame(
                 b = sweep_order(m, nb, reverse)
                 if it > 0:
                     b = stiff_bends[b]
-                bend_gs_one(b, x, xp, w, bends, kw, bcomp, bbeta, lam_b, h, omega_b)
+                bend_gs_one(b, x, xp, w, bends, kw, bcomp, bbeta, lam_b, inv_h, omega_b)
             for si in range(n_sets):
                 lo = set_ranges[si][0]
                 hi = set_ranges[si][1]
@@ -1648,7 +1650,8 @@ def xpbd_frame(
                     if reverse != 0:
                         e = hi - 1 - m
                     spring_gs_one(
-                        e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, h, omega_s
+                        e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, inv_h,
+                        omega_s,
                     )
         # After the sweeps: what they left beyond a tether goes back onto it before contact.
         for t in range(n_tethers):
