@@ -345,6 +345,13 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, so
         from datagen.pipeline.stages import escalation_note
 
         click.echo("  " + escalation_note(sim).removeprefix("; "))
+    from datagen.pipeline.stages import over_qa_bounds
+
+    # Written all the same (it is the scene asked for), but never as if it were dataset-grade.
+    breached, reason = over_qa_bounds(record, user_fabrics)
+    if breached:
+        click.echo(f"warning: {out} breaks a QA bound, and a dataset run would reject this "
+                   f"scene (stage qa): {reason}", err=True)
     start = record.body.lead_in_frames
     if export_obj:
         from datagen.io.export import write_obj_sequence

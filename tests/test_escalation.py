@@ -191,3 +191,40 @@ def test_a_batch_result_is_judged_as_a_run_of_its_own(monkeypatch):
     assert again.report["escalated_from"] == {
         "settings": "xpbd default 20x4, sor 1.6",
         "reason": "unstable at frame 3: runaway velocity", "wall_time_s": None}
+
+
+def test_simulate_writes_a_scene_over_a_bound_but_warns_that_a_dataset_would_reject_it(
+        tmp_path, monkeypatch):
+    """`datagen simulate` keeps the scene it was asked for, but where the kept run still breaks
+    a QA bound it says so (on stderr, naming the bound, the value and the frame) instead of
+    reporting it as if it were dataset-grade; the bound comes from the user's fabric. Here the
+    simulation is the shard factory's record (the test is about the command's report)."""
+    from click.testing import CliRunner
+
+    import datagen.body.anny_model as anny_model
+    import datagen.pipeline.stages as stages
+    from datagen.cli import main
+
+    fabrics = tmp_path / "fabrics.yaml"
+    fabrics.write_text("fabrics:\n  strict:\n    base: cotton\n    max_strain: 0.05\n"
+                       "  loose:\n    base: cotton\n    max_strain: 0.07\n")
+    monkeypatch.setattr(anny_model, "default_body_model", lambda: None)
+
+    def run(fabric: str):
+        record = sf.make_record(0).record  # strain p99.9 rises to 0.06 at frame 9
+        record.sim.report["simulated_seconds_per_wall_second"] = 1.0
+        for g in record.garments:
+            g.fabric = fabric
+        monkeypatch.setattr(stages, "run_sequence", lambda spec, model, fabrics=None: record)
+        out = tmp_path / f"{fabric}.h5"
+        result = CliRunner().invoke(main, ["simulate", "--fabrics-file", str(fabrics),
+                                           "--fabric", fabric, "--out", str(out)])
+        assert result.exit_code == 0, result.output
+        assert out.exists()
+        return result
+
+    strict = run("strict")
+    assert ("breaks a QA bound, and a dataset run would reject this scene (stage qa): strain "
+            "over the fabrics' max_strain (qa/strain_p999 0.06 at frame 9, bound 0.05)"
+            ) in strict.stderr
+    assert "warning" not in run("loose").stderr

@@ -400,6 +400,17 @@ def test_user_fabrics_from_yaml(tmp_path):
     neg.write_text("fabrics:\n  x:\n    base: cotton\n    density: -1.0\n")
     with pytest.raises(InputError, match="fabrics.x.density"):
         load_fabrics(neg)
+    # An inextensible bound no solver can meet (a t-shirt: 73 s a frame, over the bound still).
+    rigid = tmp_path / "rigid.yaml"
+    rigid.write_text("fabrics:\n  x:\n    base: cotton\n    max_strain: 0.0\n")
+    with pytest.raises(InputError, match=r"fabrics.x.max_strain.*\[0.001, 10\], got 0.0"):
+        load_fabrics(rigid)
+    # Fabrics one level too high (no 'fabrics:' key) name the stray key and what was expected.
+    flat = tmp_path / "flat.yaml"
+    flat.write_text("jersey:\n  base: cotton\n")
+    with pytest.raises(InputError, match="flat.yaml: field 'jersey': expected only the "
+                                         "top-level key 'fabrics'"):
+        load_fabrics(flat)
 
 
 def _explicit_hanging_sheet(substeps: int):

@@ -7,7 +7,7 @@ hand-off types of datagen.types.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -18,6 +18,8 @@ from datagen.spec import SceneSpec
 from datagen.types import BodySequence, Garment, Motion, SimResult
 
 if TYPE_CHECKING:
+    from datagen.qa import Breach
+    from datagen.sim.fabrics import Fabric
     from datagen.sim.simulate import ColliderTrack, SimOptions
 
 
@@ -165,20 +167,30 @@ def reject_over_qa_bounds(record: SequenceRecord) -> SequenceRecord:
     """The dataset's QA gate: a simulated sequence that breaks a physical-validity bound
     (datagen.qa) becomes a rejected record, stage "qa", with the bound, the value and the frame,
     instead of training data that `datagen validate` would fail."""
-    from datagen import qa
-
-    if record.status != "ok" or record.sim is None or not record.garments:
-        return record
-    limit = qa.strain_limit([g.fabric for g in record.garments])
-    found = qa.breaches(record.sim.qa, limit)
+    found, reason = over_qa_bounds(record)
     if not found:
         return record
     frame = found[0].frame
-    reason = "; ".join(b.reason for b in found) + groin_overlap_note(
-        record.body, [b.frame for b in found]) + escalation_note(record.sim)
     return SequenceRecord(
         spec=record.spec, status="rejected", stage="qa",
         reason=reason, frames=(frame, frame), timings=record.timings)
+
+
+def over_qa_bounds(record: SequenceRecord,
+                   fabrics: Mapping[str, Fabric] | None = None) -> tuple[list[Breach], str]:
+    """The physical-validity bounds (datagen.qa) that a simulated record breaks, and the reason
+    a rejection gives for them (empty where none). `fabrics`: user fabrics by name, for a
+    scene that uses them (`datagen simulate --fabrics-file`)."""
+    from datagen import qa
+
+    if record.status != "ok" or record.sim is None or not record.garments:
+        return [], ""
+    limit = qa.strain_limit([g.fabric for g in record.garments], fabrics)
+    found = qa.breaches(record.sim.qa, limit)
+    if not found:
+        return [], ""
+    return found, "; ".join(b.reason for b in found) + groin_overlap_note(
+        record.body, [b.frame for b in found]) + escalation_note(record.sim)
 
 
 def groin_overlap_note(body: BodySequence | None, frames: list[int]) -> str:
