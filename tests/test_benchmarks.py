@@ -177,3 +177,42 @@ def test_blender_at_one_thread_is_given_one_openmp_thread_too(monkeypatch):
     (one_cmd, one_env), (default_cmd, default_env) = calls
     assert one_cmd[one_cmd.index("-t") + 1] == "1" and one_env["OMP_NUM_THREADS"] == "1"
     assert "-t" not in default_cmd and default_env is None
+
+
+def test_the_warm_start_study_starts_from_the_product_and_carries_the_hanging_load():
+    """benchmarks/study_warm_start.py carries each substep's multipliers into the next: its
+    cold variant must be the product's xpbd step to the bit (its errors are set against the
+    product's), and a carried load must leave a hanging tube less sagged, nearer to what
+    converged sweeps give, than cold sweeps at the same cost: the effect the study weighs
+    against its instability. A coarse denim tube hanging from its pins, from rest, no collider,
+    30 substeps at 2 sweeps each."""
+    import numpy as np
+
+    from benchmarks.study_warm_start import WarmStartXPBD
+    from datagen.sim.effects import Effects
+    from datagen.sim.solvers import SolverSettings, XPBDSolver
+
+    model = _study_tube()
+    h, substeps = 1.0 / 30.0 / 20, 30
+
+    def hang(solver, variant: str | None = None):
+        if variant is not None:
+            solver.variant = variant
+        solver.set_state(model.x0, np.zeros_like(model.x0))
+        solver.set_pin_targets(model.x0[model.pinned], model.x0[model.pinned])
+        for _ in range(substeps):
+            solver.substep(h, None, 0.0, 1.0)
+        return solver.get_state()[0].astype(np.float64)
+
+    effects = Effects(pins=True)
+    product = hang(XPBDSolver(model, effects, SolverSettings(iterations=2)))
+    cold = hang(WarmStartXPBD(model, effects, SolverSettings(iterations=2)), "cold")
+    assert np.array_equal(cold, product)
+    warm = hang(WarmStartXPBD(model, effects, SolverSettings(iterations=2)), "smooth x2")
+    converged = hang(XPBDSolver(model, effects, SolverSettings(iterations=64)))
+    free = np.ones(len(model.x0), bool)
+    free[model.pinned] = False
+    sag = {k: float((converged[free, 2] - x[free, 2]).mean())
+           for k, x in (("cold", cold), ("warm", warm))}
+    assert sag["cold"] > 0.0  # cold sweeps leave the tube lower than converged ones
+    assert abs(sag["warm"]) < 0.5 * sag["cold"], sag
