@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> None:
     body = (
         f"Full versions of the {len(results)} cases in `pipelines/hard_cases.yaml`, each through "
         "the real pipeline at the default settings (xpbd, quality `default`; a run that breaks "
-        "a bound is simulated again one preset up, as in a dataset run: docs/simulator.md, "
+        "a bound is simulated again at finer steps, as in a dataset run: docs/simulator.md, "
         "\"Escalation\"). A case passes when "
         f"it ends finite with at most {100 * STRAIN_SHARE_MAX:.1f} % of fabric edges beyond the "
         f"fabric's strain bound and at most {100 * DEEP_SHARE_MAX:.0f} % of vertices deeper than "

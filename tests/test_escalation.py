@@ -14,6 +14,7 @@ from datagen import qa
 from datagen.errors import RejectedSequence
 from datagen.pipeline.stages import (
     SequenceRecord,
+    next_rung,
     reject_over_qa_bounds,
     simulate_within_bounds,
 )
@@ -38,6 +39,14 @@ def test_escalation_goes_one_preset_up_with_plain_sweeps():
     assert SimOptions(quality="reference").escalated() is None
     assert SimOptions(substeps=30).escalated() is None
     assert SimOptions(iterations=6).escalated() is None
+    # The ladder (stages.next_rung) goes one rung past the top preset, its steps doubled, and
+    # no further: steps given, by the caller or by that rung, are not escalated.
+    assert next_rung(SimOptions()) == up
+    past = next_rung(up)
+    assert (past.resolve_steps(), past.sor) == ((80, 16), ESCALATED_SOR)
+    assert past.steps_label() == "reference 80x16, sor 1"
+    assert next_rung(past) is None and next_rung(SimOptions(substeps=30)) is None
+    assert next_rung(SimOptions(quality="reference")).sor == ESCALATED_SOR
     assert SimOptions().steps_label() == "default 20x4, sor 1.6"
 
 
@@ -90,25 +99,49 @@ def test_a_run_within_its_bounds_is_not_simulated_again(monkeypatch):
     assert len(calls) == 1 and "escalated_from" not in result.report
 
 
-def test_a_sequence_still_over_after_escalation_is_rejected_naming_both_runs(monkeypatch):
-    """At a 1.2 % bound the draft preset (0.0204) and the default steps with plain sweeps
-    (0.0137) both end over it: the gate rejects the second run and says both."""
+def test_escalation_climbs_until_a_run_keeps_its_bounds(monkeypatch):
+    """At a 1.2 % bound the draft preset (measured 0.0204) and the default steps with plain
+    sweeps (0.0137) end over it, the reference steps within it (0.0115): the ladder stops
+    there, and the result names both runs it did not keep."""
     garments, track = _sheet_on_sphere(monkeypatch, 0.012)
+    calls = _counting_simulate(monkeypatch)
     options = SimOptions(quality="draft", settle_seconds=0.0, strain_refinements=0)
     result = simulate_within_bounds(garments, track, options)
-    assert result.report["quality"] == "default" and qa.breaches(result.qa, 0.012)
+    assert [c.quality for c in calls] == ["draft", "default", "reference"]
+    assert (result.report["substeps"], result.report["iterations"]) == (40, 8)
+    assert not qa.breaches(result.qa, 0.012)
+    dropped = result.report["escalations"]
+    assert [d["settings"] for d in dropped] == ["xpbd draft 10x2, sor 1.6",
+                                                "xpbd default 20x4, sor 1"]
+    assert result.report["escalated_from"] == dropped[0]
+    assert all("qa/strain_p999" in d["reason"] and d["wall_time_s"] > 0 for d in dropped)
+
+
+def test_a_sequence_over_its_bound_on_every_rung_is_rejected_naming_every_run(monkeypatch):
+    """At a 0.6 % bound every rung ends over it (measured: draft 0.0158, default with plain
+    sweeps 0.0083, reference 0.0065, and the reference's steps doubled, the rung past the top
+    preset, 0.0061): the last run is the result, and the gate rejects it naming every run."""
+    garments, track = _sheet_on_sphere(monkeypatch, 0.006)
+    calls = _counting_simulate(monkeypatch)
+    options = SimOptions(quality="draft", settle_seconds=0.0, strain_refinements=0)
+    result = simulate_within_bounds(garments, track, options)
+    assert [(c.quality, c.substeps) for c in calls] == [
+        ("draft", None), ("default", None), ("reference", None), ("reference", 80)]
+    assert (result.report["substeps"], result.report["iterations"]) == (80, 16)
+    assert qa.breaches(result.qa, 0.006)
     record = SequenceRecord(spec=SceneSpec(0, 0, "seq"), status="ok", garments=garments,
                             sim=result)
     rejected = reject_over_qa_bounds(record)
     assert rejected.status == "rejected" and rejected.stage == "qa"
     assert rejected.reason.startswith("strain over the fabrics' max_strain (qa/strain_p999 ")
-    assert ("; simulated again at default 20x4, sor 1, after the run at xpbd draft 10x2, "
-            "sor 1.6: strain over") in rejected.reason
-    # From the top preset there is nothing to escalate to: one run, its breach as it is.
-    calls = _counting_simulate(monkeypatch)
-    top = simulate_within_bounds(garments, track, replace(options, quality="reference",
-                                                           sor=None))
-    assert len(calls) == 1 and "escalated_from" not in top.report
+    assert ("; simulated again at reference 80x16, sor 1, after the runs at xpbd draft 10x2, "
+            "sor 1.6 (strain over the fabrics' max_strain (qa/strain_p999 0.01") in rejected.reason
+    assert "), at xpbd default 20x4, sor 1 (strain over" in rejected.reason
+    assert ") and at xpbd reference 40x8, sor 1 (strain over" in rejected.reason
+    # From steps the caller gave there is nothing to escalate to: one run, its breach as it is.
+    calls.clear()
+    given = simulate_within_bounds(garments, track, replace(options, substeps=20, iterations=4))
+    assert len(calls) == 1 and "escalated_from" not in given.report
 
 
 def _stiff_hanging_sheet(monkeypatch, stiffer: float):
@@ -137,15 +170,19 @@ def test_a_run_rejected_as_unstable_is_simulated_again_one_preset_up(monkeypatch
     assert np.isfinite(result.vertices[garments[0].name]).all()
 
 
-def test_a_run_unstable_after_escalation_is_rejected_naming_both_runs(monkeypatch):
-    garments, options = _stiff_hanging_sheet(monkeypatch, 200.0)
+def test_a_run_unstable_on_every_rung_is_rejected_naming_every_run(monkeypatch):
+    """A sheet 100,000 times stiffer than cotton is unstable for the explicit solver on every
+    rung, the top preset's 2000 substeps doubled included: the rejection names every run."""
+    garments, options = _stiff_hanging_sheet(monkeypatch, 1e5)
     with pytest.raises(RejectedSequence) as info:
         simulate_within_bounds(garments, None, options)
     assert info.value.stage == "simulate"
     message = info.value.reason
-    assert message.startswith("unstable at frame 1: runaway velocity")
-    assert "; simulated again at default 400x1, sor 1, after the run at explicit draft " \
-           "200x1, sor 1: unstable at frame 1: runaway velocity" in message
+    assert message.startswith("unstable at frame 1: ")
+    assert ("; simulated again at reference 4000x2, sor 1, after the runs at explicit draft "
+            "200x1, sor 1 (unstable at frame 1: ") in message
+    assert "), at explicit default 400x1, sor 1 (unstable at frame 1: " in message
+    assert ") and at explicit reference 2000x1, sor 1 (unstable at frame 1: " in message
 
 
 def test_the_manifest_says_which_sequences_were_simulated_again(tmp_path):

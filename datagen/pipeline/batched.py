@@ -7,7 +7,7 @@ group of sequences goes through the body and outfit stages one by one, as in
 share a solver (the same simulation settings, timeline and vertex-wide effects) as one batch
 each; a sequence that can share with none is simulated as an unbatched one is. Each sequence is
 then judged on its own exactly as an unbatched one is: a result that breaks a QA bound, or a
-scene the batch could not keep stable, is simulated again alone one preset up
+scene the batch could not keep stable, is simulated again alone up the escalation ladder
 (`stages.simulate_within_bounds`). So a batch changes what a sequence costs, its substeps (a
 frame the strain refinement refines is refined for every scene of the batch) and its rounding,
 never which bounds it meets.

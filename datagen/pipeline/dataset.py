@@ -183,7 +183,7 @@ def manifest_rows(out: Path) -> list[dict]:
                 rows.append({
                     "id": seq_id, "index": spec["sequence_index"], "shard": shard.name,
                     "status": "ok", "reason": None, "split": spec["split"],
-                    # simulated again one preset up (stages.simulate_within_bounds): why
+                    # simulated again at finer steps (stages.simulate_within_bounds): why
                     "escalated": (report.get("escalated_from") or {}).get("reason"),
                     "garments": [str(garments[n].attrs["type"]) for n in garments],
                     "fabrics": [str(garments[n].attrs["fabric"]) for n in garments],
