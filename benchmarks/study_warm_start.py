@@ -37,9 +37,10 @@ import scipy.sparse as sp
 
 import datagen.sim.simulate as simulate_module
 from benchmarks.bench_sim import ERROR_FRAMES, PEER_JSON, float64_reference
+from benchmarks.study_bend_block import SweepsXPBD
 from datagen.errors import RejectedSequence
 from datagen.sim.precision import NP_REAL
-from datagen.sim.solvers import ClothSolver, XPBDSolver, make_solver
+from datagen.sim.solvers import make_solver
 from datagen.study.metrics import rms_distance
 from datagen.study.run import run_ours
 from datagen.study.scenes import build_scene
@@ -98,7 +99,7 @@ class _Fibres:
         return out
 
 
-class WarmStartXPBD(XPBDSolver):
+class WarmStartXPBD(SweepsXPBD):
     """xpbd on its per-effect kernels, each substep starting from the last one's multipliers
     as `variant` filters them (the class docstring of the module)."""
 
@@ -110,9 +111,6 @@ class WarmStartXPBD(XPBDSolver):
         self._fibres: dict[str, _Fibres] = {}
         self._last: dict | None = None  # the multipliers a substep ended with, and its step
         self._before: dict[str, np.ndarray] = {}  # the ones before them (minmod in time)
-
-    def advance_frame(self, collider, n_sub, h, profile=False, search=True) -> None:
-        ClothSolver.advance_frame(self, collider, n_sub, h, True, search)
 
     def set_state(self, x, v) -> None:
         super().set_state(x, v)
