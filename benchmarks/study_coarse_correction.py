@@ -57,10 +57,15 @@ import taichi as ti
 
 import datagen.sim.simulate as simulate_module
 from benchmarks import chain_kernels as CK
-from benchmarks.bench_sim import ERROR_FRAMES, PEER_JSON, float64_reference
+from benchmarks.bench_sim import PEER_JSON
 from benchmarks.study_bend_block import ExactBendBlock, SweepsXPBD, solve_against_sweep
-from benchmarks.study_warm_start import _Fibres
-from datagen.errors import RejectedSequence
+from benchmarks.study_warm_start import (
+    LONG_FRAMES,
+    _Fibres,
+    print_error_table,
+    run_or_runaway,
+    study_scene,
+)
 from datagen.sim import kernels as K
 from datagen.sim.effects import Effects
 from datagen.sim.fabrics import FABRICS
@@ -87,7 +92,6 @@ VARIANTS = [("cold", "", (), ""),
             ("sweeps 64, 16, 4, bend patches 3", "sweep", (64, 16, 4), "all", 3.0),
             ("sweeps 64, 16, 4, exact bending", "sweep", (64, 16, 4), "all", -1.0),
             ("exact springs, exact bending", "exact", (1,), "all", -1.0)]
-LONG_FRAMES = 60
 
 
 def fibre_runs(springs: np.ndarray, x: np.ndarray, length: int) -> list[list[int]]:
@@ -374,14 +378,6 @@ def chain_sweep_ms(scene_name: str, resolution: str, fabric: str, lengths: tuple
     return out[0], out[1], out[2]
 
 
-def _run(scene, sub: int, it: int) -> tuple[np.ndarray | None, str]:
-    try:
-        run = run_ours(scene, "xpbd", sub, it)
-    except RejectedSequence as exc:
-        return None, exc.reason.split(",")[0].split(":")[-1].strip()
-    return run.positions, ""
-
-
 FRAME_SETTINGS = ["20x2", "10x2", "6x2"]
 
 
@@ -474,17 +470,14 @@ def main() -> None:
     scenes = [sc for sc in SCENES if sc[2] in args.fabrics.split(",")]
     for scene_name, resolution, fabric in scenes:
         t0 = time.perf_counter()
-        cache = args.refs / f"{scene_name}_{resolution}_{fabric}.npz" if args.refs else None
-        ref, horizon = float64_reference(scene_name, fabric, resolution, cache)
-        short = build_scene(scene_name, fabric, resolution, frames=ERROR_FRAMES)
-        long = build_scene(scene_name, fabric, resolution, frames=LONG_FRAMES)
+        ref, horizon, short, long = study_scene(scene_name, resolution, fabric, args.refs)
         row = peer[(f"{scene_name} {resolution}", fabric)]
         bound = row["blender_err_mm"]
         candidates = []
         for name, kind, lengths, when, *patch in variants:
             _use(kind, lengths, when, *patch)
             for sub, it in settings:
-                positions, why = _run(short, sub, it)
+                positions, why = run_or_runaway(short, sub, it)
                 e = None if positions is None else 1000 * rms_distance(positions, ref, horizon)
                 errors[(fabric, name, sub, it)] = (e, why)
                 print(f"  {fabric} {name} {sub}x{it}: {e if e is None else round(e, 2)} {why}",
@@ -525,26 +518,14 @@ def main() -> None:
                 sub, it = (tuple(int(k) for k in min(mine, key=lambda c: c[7])[4].split("x"))
                            if mine else min(within, key=lambda si: si[0] * si[1]))
                 _use(kind, lengths, when, *patch)
-                positions, why = _run(long, sub, it)
+                positions, why = run_or_runaway(long, sub, it)
                 long_runs[(fabric, name)] = (f"{sub}x{it}", why or "ran")
         simulate_module.make_solver = make_solver
         print(f"{scene_name} {resolution} {fabric}: horizon {horizon}, "
               f"{time.perf_counter() - t0:.0f} s", flush=True)
     print(f"\nCommand: `{COMMAND}`\n")
-    header = [f"{s}x{i}" for s, i in settings]
-    print("| scene | correction | " + " | ".join(header) + " | cheapest within Blender's error, "
-          f"{LONG_FRAMES} frames |")
-    print("|---" * (3 + len(header)) + "|")
-    for scene_name, resolution, fabric in scenes:
-        bound = peer[(f"{scene_name} {resolution}", fabric)]["blender_err_mm"]
-        for name, *_ in variants:
-            cells = []
-            for s, i in settings:
-                e, why = errors[(fabric, name, s, i)]
-                cells.append(f"{e:.2f}" if e is not None else f"runaway ({why})")
-            setting, outcome = long_runs.get((fabric, name), ("-", "-"))
-            print(f"| {scene_name} {resolution} {fabric} (Blender {bound:.2f}) | {name} | "
-                  + " | ".join(cells) + f" | {setting}: {outcome} |")
+    print_error_table(scenes, "correction", [v[0] for v in variants], settings, errors,
+                      long_runs, lambda n, r, f: peer[(f"{n} {r}", f)]["blender_err_mm"])
     print("\n| scene | correction | setting | error mm | fused frame alone s/sim-s | "
           "projected s/sim-s | product at Blender's error | its s/sim-s | gain | "
           "against Blender | spring sweep ms | chain levels ms | bending sweep ms |")

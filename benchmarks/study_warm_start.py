@@ -210,12 +210,44 @@ def _use(variant: str, log: list | None = None) -> None:
     simulate_module.make_solver = make
 
 
-def _run(scene, sub: int, it: int) -> tuple[np.ndarray | None, str]:
+def run_or_runaway(scene, sub: int, it: int) -> tuple[np.ndarray | None, str]:
+    """The positions of an xpbd run at sub x it, or None and why it was rejected (the studies'
+    variants run on the solver make_solver gives)."""
     try:
         run = run_ours(scene, "xpbd", sub, it)
     except RejectedSequence as exc:
         return None, exc.reason.split(",")[0].split(":")[-1].strip()
     return run.positions, ""
+
+
+def study_scene(scene_name: str, resolution: str, fabric: str, refs: Path | None):
+    """A peer scene's float64 reference and its horizon (kept in `refs` where given), and the
+    scene for the error runs (ERROR_FRAMES) and for the long runs (LONG_FRAMES)."""
+    cache = refs / f"{scene_name}_{resolution}_{fabric}.npz" if refs else None
+    ref, horizon = float64_reference(scene_name, fabric, resolution, cache)
+    return (ref, horizon, build_scene(scene_name, fabric, resolution, frames=ERROR_FRAMES),
+            build_scene(scene_name, fabric, resolution, frames=LONG_FRAMES))
+
+
+def print_error_table(scenes, column: str, names, settings, errors: dict, long_runs: dict,
+                      bound) -> None:
+    """The studies' error table: a row per scene and variant, RMS mm at each setting (or why
+    it ran away) and its cheapest setting within Blender's error (`bound(scene_name,
+    resolution, fabric)`) over LONG_FRAMES frames."""
+    header = [f"{s}x{i}" for s, i in settings]
+    print(f"| scene | {column} | " + " | ".join(header) + " | cheapest within Blender's error, "
+          f"{LONG_FRAMES} frames |")
+    print("|---" * (3 + len(header)) + "|")
+    for scene_name, resolution, fabric in scenes:
+        b = bound(scene_name, resolution, fabric)
+        for name in names:
+            cells = []
+            for s, i in settings:
+                e, why = errors[(fabric, name, s, i)]
+                cells.append(f"{e:.2f}" if e is not None else f"runaway ({why})")
+            setting, outcome = long_runs.get((fabric, name), ("-", "-"))
+            print(f"| {scene_name} {resolution} {fabric} (Blender {b:.2f}) | {name} | "
+                  + " | ".join(cells) + f" | {setting}: {outcome} |")
 
 
 def main() -> None:
@@ -227,15 +259,12 @@ def main() -> None:
     errors, long_runs, factors = {}, {}, []
     for scene_name, resolution, fabric in SCENES:
         t0 = time.perf_counter()
-        cache = args.refs / f"{scene_name}_{resolution}_{fabric}.npz" if args.refs else None
-        ref, horizon = float64_reference(scene_name, fabric, resolution, cache)
-        short = build_scene(scene_name, fabric, resolution, frames=ERROR_FRAMES)
-        long = build_scene(scene_name, fabric, resolution, frames=LONG_FRAMES)
+        ref, horizon, short, long = study_scene(scene_name, resolution, fabric, args.refs)
         bound = blender[(f"{scene_name} {resolution}", fabric)]
         for variant in VARIANTS:
             _use(variant, factors if variant.endswith("residual factor") else None)
             for sub, it in SETTINGS:
-                positions, why = _run(short, sub, it)
+                positions, why = run_or_runaway(short, sub, it)
                 e = None if positions is None else 1000 * rms_distance(positions, ref, horizon)
                 errors[(fabric, variant, sub, it)] = (e, why)
             within = [(s, i) for s, i in SETTINGS
@@ -243,26 +272,14 @@ def main() -> None:
                       and errors[(fabric, variant, s, i)][0] <= bound]
             if variant != "cold" and within:  # the cheapest within Blender's error, for long
                 sub, it = min(within)
-                positions, why = _run(long, sub, it)
+                positions, why = run_or_runaway(long, sub, it)
                 long_runs[(fabric, variant)] = (f"{sub}x{it}", why or "ran")
         simulate_module.make_solver = make_solver
         print(f"{scene_name} {resolution} {fabric}: horizon {horizon}, "
               f"{time.perf_counter() - t0:.0f} s", flush=True)
     print(f"\nCommand: `{COMMAND}`\n")
-    header = [f"{s}x{i}" for s, i in SETTINGS]
-    print("| scene | filter | " + " | ".join(header) + " | cheapest within Blender's error, "
-          f"{LONG_FRAMES} frames |")
-    print("|---" * (3 + len(header)) + "|")
-    for scene_name, resolution, fabric in SCENES:
-        bound = blender[(f"{scene_name} {resolution}", fabric)]
-        for variant in VARIANTS:
-            cells = []
-            for s, i in SETTINGS:
-                e, why = errors[(fabric, variant, s, i)]
-                cells.append(f"{e:.2f}" if e is not None else f"runaway ({why})")
-            setting, outcome = long_runs.get((fabric, variant), ("-", "-"))
-            print(f"| {scene_name} {resolution} {fabric} (Blender {bound:.2f}) | {variant} | "
-                  + " | ".join(cells) + f" | {setting}: {outcome} |")
+    print_error_table(SCENES, "filter", VARIANTS, SETTINGS, errors, long_runs,
+                      lambda n, r, f: blender[(f"{n} {r}", f)])
     if factors:
         print(f"\nresidual factors chosen: median {np.median(factors):.2f}, "
               f"5-95 % {np.percentile(factors, 5):.2f}-{np.percentile(factors, 95):.2f}")
