@@ -135,13 +135,15 @@ def body_model_from_options(name: str, smpl_model: str | None):
 
 
 @main.command()
-@click.option("--seed", default=0, show_default=True, help="Draws the subject's shape and gender.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0),
+              help="Draws the subject's shape and gender.")
 @click.option(
     "--pipeline",
     type=click.Path(dir_okay=False),
     help="Draw the whole scene from a recipe YAML (its seed) instead of --seed.",
 )
-@click.option("--index", default=0, show_default=True, help="Sequence index within --pipeline.")
+@click.option("--index", default=0, show_default=True, type=click.IntRange(min=0),
+              help="Sequence index within --pipeline.")
 @_motion_options
 @click.option(
     "--frames",
@@ -199,6 +201,13 @@ def body(
 
     base_dir = None
     config = BodyConfig()
+    ctx = click.get_current_context()
+    given = [f"--{name}" for name in ("seed", "frames")
+             if ctx.get_parameter_source(name) == click.core.ParameterSource.COMMANDLINE]
+    if pipeline and given:
+        # The recipe draws them; taking one silently would write a scene not asked for.
+        raise click.UsageError(f"{' and '.join(given)} cannot be used with --pipeline, whose "
+                               f"recipe draws the subject and the motion's length")
     if pipeline:
         from datagen.recipe import load_recipe
         from datagen.sampling import sample_scene
@@ -269,7 +278,8 @@ def scene_with_outfit(spec, garment: str | None, fabric: str | None, seed: int):
 
 
 @main.command()
-@click.option("--seed", default=0, show_default=True, help="Draws the subject and the outfit.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0),
+              help="Draws the subject and the outfit.")
 @click.option("--fabric", default=None,
               help="Fabric of every garment: cotton, silk, denim, leather, rubber, or one from "
                    "--fabrics-file. Default: drawn by the CLOTH3D rules.")

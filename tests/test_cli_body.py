@@ -115,7 +115,8 @@ def _bad_inputs(tmp_path: Path, cmu_dir: Path) -> dict[str, tuple[list, str]]:
 def test_bad_input_is_one_line_and_leaves_nothing(tmp_path, cmu_dir, case):
     args, expected = _bad_inputs(tmp_path, cmu_dir)[case]
     out = tmp_path / "out.h5"
-    r = run("body", *args, "--frames", 30, "--out", out)
+    frames = [] if "--pipeline" in args else ["--frames", 30]  # a recipe draws its own
+    r = run("body", *args, *frames, "--out", out)
     assert r.returncode != 0
     lines = [line for line in r.stderr.splitlines() if line.strip()]
     assert len(lines) == 1, r.stderr
@@ -131,3 +132,29 @@ def test_help_is_useful():
     r = run("body", "--help")
     for option in ("--motion", "--bvh", "--amass", "--frames", "--gender", "--out"):
         assert option in r.stdout
+
+
+@pytest.mark.parametrize("command", ["body", "simulate", "garments"])
+def test_a_negative_seed_is_refused_by_name(tmp_path, command):
+    """Seeds seed numpy's generators, which take non-negative integers only: -1 ended
+    `datagen simulate` and `datagen garments` in a numpy traceback after the body model had
+    loaded."""
+    out = tmp_path / ("out" if command == "garments" else "out.h5")
+    r = run(command, "--seed", -1, "--out", out)
+    assert r.returncode == 2
+    assert "Invalid value for '--seed'" in r.stderr and "-1" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
+    assert not out.exists()
+
+
+def test_body_options_the_recipe_draws_are_refused_with_a_pipeline(tmp_path):
+    """With --pipeline the recipe draws the subject and the motion's length: --seed and
+    --frames were ignored without a word, and --index -1 ended in a numpy traceback."""
+    out = tmp_path / "out.h5"
+    recipe = Path(__file__).parents[1] / "pipelines" / "default.yaml"
+    r = run("body", "--pipeline", recipe, "--frames", 3, "--seed", 4, "--out", out)
+    assert r.returncode == 2
+    assert "--seed and --frames cannot be used with --pipeline" in r.stderr, r.stderr
+    r = run("body", "--pipeline", recipe, "--index", -1, "--out", out)
+    assert r.returncode == 2 and "Invalid value for '--index'" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and not out.exists()

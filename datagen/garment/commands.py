@@ -173,7 +173,8 @@ def _body_proximity(spec: dict, source: Path):
 
 
 @click.command()
-@click.option("--seed", default=0, show_default=True, help="Draws the subject and the outfit.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0),
+              help="Draws the subject and the outfit.")
 @click.option(
     "--spec",
     "spec_path",
