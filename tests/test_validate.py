@@ -96,6 +96,26 @@ def test_truncated_shard(dataset):
     assert only_error(validate(shard)).file == str(shard)  # the file on its own
     code, out = run_cli(shard)
     assert code == 1 and "unreadable shard" in out
+    size = len(data)
+    assert f"truncated, {size // 2} of {size} bytes" in p.message
+
+
+def test_a_shard_reader_says_why_a_file_is_unreadable(dataset, tmp_path):
+    """Reading (inspect, export, preview, the trainers) says what validate says: h5py's reason,
+    not its first words ("Unable to synchronously open file")."""
+    from datagen.errors import InputError
+    from datagen.io.shard import ShardReader
+
+    shard = dataset.shards[0]
+    data = shard.read_bytes()
+    cut = tmp_path / "cut.h5"
+    cut.write_bytes(data[:1000])
+    with pytest.raises(InputError, match=f"cut.h5.*truncated, 1000 of {len(data)} bytes"):
+        ShardReader(cut)
+    text = tmp_path / "notes.h5"
+    text.write_text("not a shard")
+    with pytest.raises(InputError, match="file signature not found .not an HDF5 file"):
+        ShardReader(text)
 
 
 def test_not_hdf5(tmp_path):

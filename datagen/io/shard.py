@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -151,6 +152,24 @@ def write_body(group: h5py.Group, body: BodySequence, store_vertices: bool = Fal
         write_array(g, "vertices", body.vertices[start:].astype(np.float32), per_frame=True)
 
 
+def h5py_reason(exc: BaseException) -> str:
+    """The reason inside an h5py error ("Unable to synchronously open file (reason)")."""
+    text = str(exc)
+    if "(" in text and text.endswith(")"):
+        text = text[text.index("(") + 1:-1]
+    return text or type(exc).__name__
+
+
+def unreadable_reason(exc: BaseException) -> str:
+    """Why h5py could not open a shard, in words: a truncated file says how much of it is
+    there; anything else, h5py's reason and what it usually means."""
+    text = h5py_reason(exc)
+    sizes = re.search(r"truncated file: eof = (\d+).*stored_eof = (\d+)", text)
+    if sizes:
+        return f"truncated, {sizes[1]} of {sizes[2]} bytes (an interrupted copy or a full disk?)"
+    return f"{text} (not an HDF5 file, or a damaged one)"
+
+
 class ShardReader:
     """Read access to one shard; checks the format on open."""
 
@@ -161,9 +180,8 @@ class ShardReader:
         try:
             self._file = h5py.File(self.path, "r")
         except OSError as exc:
-            raise InputError(
-                self.path, None, "a readable HDF5 shard", str(exc).split("(")[0]
-            ) from None
+            raise InputError(self.path, None, "a readable HDF5 shard", unreadable_reason(exc)
+                             ) from None
         fmt = self._file.attrs.get("format")
         if fmt != FORMAT:
             self._file.close()

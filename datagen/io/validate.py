@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,7 +18,13 @@ import h5py
 import numpy as np
 
 from datagen import qa as qa_bounds
-from datagen.io.shard import FORMAT, FORMAT_VERSION, TMP_SUFFIX
+from datagen.io.shard import (
+    FORMAT,
+    FORMAT_VERSION,
+    TMP_SUFFIX,
+    h5py_reason,
+    unreadable_reason,
+)
 
 MANIFEST = "manifest.jsonl"
 QA_SERIES = ("strain_mean", "strain_max", "strain_p999", "over_strain_share", "inside_share",
@@ -137,27 +142,13 @@ class _ShardResult:
     rejected: list[str] = field(default_factory=list)
 
 
-def _open_error(exc: BaseException) -> str:
-    text = str(exc)
-    # h5py: "Unable to synchronously open file (truncated file: eof = 1, ... stored_eof = 2)"
-    if "(" in text and text.endswith(")"):
-        text = text[text.index("(") + 1:-1]
-    return text or type(exc).__name__
-
-
 def _check_shard(path: Path, qa: str) -> _ShardResult:
     result = _ShardResult([])
     name = str(path)
     try:
         f = h5py.File(path, "r")
     except Exception as exc:  # noqa: BLE001 - any failure to open is one problem, not a crash
-        text = _open_error(exc)
-        sizes = re.search(r"truncated file: eof = (\d+).*stored_eof = (\d+)", text)
-        if sizes:
-            text = (f"truncated: {sizes[1]} of its {sizes[2]} bytes are there (an interrupted "
-                    "copy or a full disk?)")
-        else:
-            text += " (not an HDF5 file, or a damaged one)"
+        text = unreadable_reason(exc)
         result.problems.append(Problem(name, None, f"unreadable shard: {text}"))
         return result
     with f:
@@ -183,14 +174,14 @@ def _check_shard(path: Path, qa: str) -> _ShardResult:
             try:
                 check.run(f["sequences"][sid])
             except Exception as exc:  # noqa: BLE001 - damaged metadata: report, go on
-                check.error(f"unreadable ({type(exc).__name__}: {_open_error(exc)})")
+                check.error(f"unreadable ({type(exc).__name__}: {h5py_reason(exc)})")
             result.problems += check.problems
         for sid in result.rejected:
             check = _SequenceCheck(name, sid, qa)
             try:
                 check.rejected(rejected[sid])
             except Exception as exc:  # noqa: BLE001
-                check.error(f"unreadable rejection ({type(exc).__name__}: {_open_error(exc)})")
+                check.error(f"unreadable rejection ({type(exc).__name__}: {h5py_reason(exc)})")
             if sid in result.sequences:
                 check.error("both finished (/sequences) and rejected (/rejected)")
             result.problems += check.problems
@@ -299,7 +290,7 @@ class _SequenceCheck:
             try:
                 digest, finite = _scan(ds)
             except Exception as exc:  # noqa: BLE001 - a damaged chunk fails to decompress
-                self.error(f"{rel}: cannot read its data ({_open_error(exc)})")
+                self.error(f"{rel}: cannot read its data ({h5py_reason(exc)})")
                 continue
             if stored is None:
                 self.error(f"{rel}: no sha256 attribute")
