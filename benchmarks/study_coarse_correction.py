@@ -178,7 +178,6 @@ class CoarseSprings:
         m = len(self.springs)
         self.P = sp.csr_matrix((np.ones(m), (np.arange(m), np.concatenate(chains))),
                                shape=(m, offset))
-        self.n_coarse = offset
 
     def correct(self, solver, h: float) -> None:
         """One Galerkin correction of the substep's linearised spring system."""
@@ -240,12 +239,10 @@ class CoarseBends:
         _, label = np.unique(cell, axis=0, return_inverse=True)
         label = label.ravel()
         self.P = sp.csr_matrix((np.ones(nb), (np.arange(nb), label)), shape=(nb, label.max() + 1))
-        self.w = solver.w_np.astype(np.float64)
-        self.WBtP = (sp.diags(self.w) @ self.B.T @ self.P).tocsr()
+        self.WBtP = (sp.diags(solver.w_np.astype(np.float64)) @ self.B.T @ self.P).tocsr()
         self.alpha_unit = solver.bcomp.to_numpy().astype(np.float64)
         self.beta = solver.bbeta.to_numpy().astype(np.float64)
         self.h = 0.0
-        self.n_coarse = self.P.shape[1]
 
     def correct(self, solver, h: float) -> None:
         alpha = self.alpha_unit / (h * h)
@@ -273,7 +270,6 @@ class CoarseXPBD(SweepsXPBD):
     kind = ""
     lengths: tuple[int, ...] = ()
     when = "all"
-    omega = 1.0
     bend_patch = 0.0  # the bending's patch size in edges (CoarseBends); 0: none; < 0: exact
 
     def __init__(self, model, effects, settings) -> None:
@@ -283,6 +279,7 @@ class CoarseXPBD(SweepsXPBD):
         self._exact_bends: ExactBendBlock | None = None
         self._levels: dict[str, list[ChainLevel]] | None = None
         self._it, self._h, self._reverse = 0, 0.0, 0
+        self._last_set = next(reversed(self.sets))  # the correction follows its sweep
 
     def _bending_sweep(self, h, it, reverse, sor) -> None:
         self._it, self._h, self._reverse = it, h, reverse
@@ -295,8 +292,8 @@ class CoarseXPBD(SweepsXPBD):
 
     def _run(self, effect, fn, *args) -> None:
         super()._run(effect, fn, *args)
-        last_set = next(reversed(self.sets))
-        if ((self.kind or self.bend_patch) and fn is K.springs_gauss_seidel and effect == last_set
+        if ((self.kind or self.bend_patch) and fn is K.springs_gauss_seidel
+                and effect == self._last_set
                 and (self.when == "all" or self._it == 0)):
             if self.kind == "exact":
                 if self._coarse is None:
@@ -321,15 +318,14 @@ class CoarseXPBD(SweepsXPBD):
                 super()._run("chains", CK.chains_gauss_seidel, self.x, self.xp, self.w,
                              s.springs, s.rest, s.comp_t, s.comp_c, s.beta, s.lam, c.ptr,
                              c.members, c.flip, self._dirs[name], self._h, self._reverse,
-                             self.omega)
+                             1.0)
 
 
-def _use(kind: str, lengths: tuple[int, ...], when: str, bend_patch: float = 0.0,
-         omega: float = 1.0) -> None:
+def _use(kind: str, lengths: tuple[int, ...], when: str, bend_patch: float = 0.0) -> None:
     def make(name, model, effects, settings):
         solver = CoarseXPBD(model, effects, settings)
         solver.kind, solver.lengths, solver.when = kind, lengths, when
-        solver.bend_patch, solver.omega = bend_patch, omega
+        solver.bend_patch = bend_patch
         return solver
 
     simulate_module.make_solver = make
@@ -345,7 +341,7 @@ def chain_sweep_ms(scene_name: str, resolution: str, fabric: str, lengths: tuple
     model = build_cloth_model([(g, FABRICS[g.fabric]) for g in scene.garments])
     solver = XPBDSolver(model, Effects(pins=bool(len(model.pinned))),
                         SolverSettings(substeps=substeps, iterations=2))
-    h = 1.0 / 30.0 / substeps
+    h = 1.0 / FPS / substeps
     x = solver.x.to_numpy().astype(np.float64)
     springs, chains = [], []
     for s in solver.sets.values():

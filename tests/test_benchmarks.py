@@ -230,6 +230,7 @@ def test_the_coarse_study_solves_a_chain_exactly_and_lifts_the_hanging_load():
     from benchmarks import chain_kernels as CK
     from benchmarks.study_coarse_correction import ChainLevel, CoarseXPBD
     from datagen.sim.effects import Effects
+    from datagen.sim.kernels import vec3
     from datagen.sim.precision import NP_REAL
     from datagen.sim.solvers import SolverSettings, XPBDSolver
 
@@ -256,7 +257,7 @@ def test_the_coarse_study_solves_a_chain_exactly_and_lifts_the_hanging_load():
     s.lam.from_numpy(lam0)
     CK.chains_gauss_seidel(solver.x, solver.xp, solver.w, s.springs, s.rest, s.comp_t,
                            s.comp_c, s.beta, s.lam, one, level.members, level.flip,
-                           ti.ndarray(K_vec3(), s.count), h, 0, 1.0)
+                           ti.ndarray(vec3, s.count), h, 0, 1.0)
     # The same update from the linearised system, in float64.
     x64 = x.astype(np.float64)
     i, j = springs[members].T
@@ -285,7 +286,7 @@ def test_the_coarse_study_solves_a_chain_exactly_and_lifts_the_hanging_load():
     s.lam.from_numpy(lam0)
     CK.chains_gauss_seidel(solver.x, solver.xp, solver.w, s.springs, s.rest, s.comp_t,
                            s.comp_c, s.beta, s.lam, one, level.members, level.flip,
-                           ti.ndarray(K_vec3(), s.count), h, 0, 1.0)
+                           ti.ndarray(vec3, s.count), h, 0, 1.0)
     moves = np.sort(np.linalg.norm(solver.x.to_numpy().astype(np.float64) - xp, axis=1))
     assert moves[-2] > 0.0 and moves[-3] < 1e-3 * moves[-2]
 
@@ -310,8 +311,3 @@ def test_the_coarse_study_solves_a_chain_exactly_and_lifts_the_hanging_load():
     assert sag["cold"] > 0.0
     assert abs(sag["chains"]) < 0.1 * sag["cold"], sag  # 3.4 mm cold, 0.02 mm with chains
 
-
-def K_vec3():
-    from datagen.sim.kernels import vec3
-
-    return vec3

@@ -154,6 +154,7 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
     current, outcome = options, first
     while True:
         up = next_rung(current)
+        settings = f"{current.solver} {current.steps_label()}"
         try:
             if isinstance(outcome, RejectedSequence):
                 raise outcome
@@ -164,8 +165,7 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
                     raise
                 raise RejectedSequence(exc.stage, exc.reason + _runs_note(
                     current.steps_label(), dropped), exc.frames) from None
-            dropped.append({"settings": f"{current.solver} {current.steps_label()}",
-                            "reason": exc.reason, "wall_time_s": None})
+            dropped.append({"settings": settings, "reason": exc.reason, "wall_time_s": None})
         else:
             found = qa.breaches(sim.qa, limit)
             if not found or up is None:
@@ -173,8 +173,7 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
                     sim.report["escalated_from"] = dropped[0]
                     sim.report["escalations"] = dropped
                 return sim
-            dropped.append({"settings": f"{current.solver} {current.steps_label()}",
-                            "reason": "; ".join(b.reason for b in found),
+            dropped.append({"settings": settings, "reason": "; ".join(b.reason for b in found),
                             "wall_time_s": float(sim.report["wall_time_s"])})
         current, outcome = up, None
 
