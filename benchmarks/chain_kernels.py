@@ -12,7 +12,7 @@ along a fibre in one update instead of one spring per sweep.
 
 import taichi as ti
 
-from datagen.sim.kernels import F1, I1, I2, V3, sweep_order, vec3
+from datagen.sim.kernels import F1, I1, I2, V3, spring_alpha_gamma, sweep_order, vec3
 from datagen.sim.precision import REAL
 
 
@@ -58,11 +58,8 @@ def chains_gauss_seidel(
                 n = d / length
             dirs[e] = n
             c = length - rest[e]
-            alpha = comp_t[e]
-            if c < 0.0:
-                alpha = comp_c[e]
-            alpha *= inv_h * inv_h
-            gamma = beta[e] * inv_h
+            ag = spring_alpha_gamma(e, c, comp_t, comp_c, beta, inv_h)
+            alpha, gamma = ag[0], ag[1]
             if w[a] + w[b] > 0.0:
                 rate = n.dot((x[b] - xp[b]) - (x[a] - xp[a]))
                 total += (-c - alpha * lam[e] - gamma * rate) / (1.0 + gamma)

@@ -1059,6 +1059,32 @@ def test_the_grid_search_finds_the_closest_triangle_within_a_cell():
     np.testing.assert_allclose(mine, exact[hit], atol=2e-6)
 
 
+def test_a_frames_full_search_visits_only_the_vertices_that_track_a_triangle():
+    """The full search every few frames (ClothSolver.search) re-searches the vertices that track
+    a triangle, so they can move to another body part; the untracked ones are left to the
+    substeps' search under their guards. A still plane: a vertex tracking a triangle it is not
+    over moves to the one under it, an untracked vertex just above the plane stays untracked,
+    and a search of every vertex (SEARCH_ALL) finds both."""
+    import taichi as ti
+
+    from datagen.sim import kernels as K
+    from datagen.sim.precision import NP_REAL, REAL, VEC3
+
+    plane = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
+    collider = BodyCollider(np.array([[0, 1, 2], [0, 2, 3]]), np.ones(2, bool), 4)
+    collider.set_frames(plane, plane)
+    x = ti.ndarray(VEC3, 2)
+    x.from_numpy(np.array([[0.5, -0.5, 0.01], [-0.5, 0.5, 0.01]], NP_REAL))  # over 0, over 1
+    w = ti.ndarray(REAL, 2)
+    w.fill(1.0)
+    tri = ti.ndarray(ti.i32, 2)
+    tri.from_numpy(np.array([1, -1], np.int32))  # the first tracks the wrong triangle
+    collider.nearest(x, w, tri, 1.0, K.SEARCH_TRACKED)
+    assert tri.to_numpy().tolist() == [0, -1]
+    collider.nearest(x, w, tri, 1.0, K.SEARCH_ALL)
+    assert tri.to_numpy().tolist() == [0, 1]
+
+
 def test_search_guards_never_hide_a_triangle_that_came_near():
     """Untracked cloth vertices skip the closest-triangle search while a guard proves nothing
     can be near. Small triangles, still, drifting with the body or flying at up to 9 m/s, pass
@@ -1170,7 +1196,7 @@ def _limit_a_patch_pulled_into_a_plane(make):
     plane = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
     collider = BodyCollider(np.array([[0, 1, 2], [0, 2, 3]]), np.ones(2, bool), 4)
     collider.set_frames(plane, plane)
-    solver.search(collider, 1.0)
+    collider.nearest(solver.x, solver.w, solver.tri, 1.0)  # every vertex tracks its triangle
     solver.xp.from_numpy(solver.x.to_numpy())  # the substep started here
     solver._limit_after_contact(collider, 0.0, 1.0, 1.0 / 600.0)
     return solver, x, solver.get_state()[0], side
@@ -1468,8 +1494,8 @@ def test_layer_contact_on_parallel_backends_is_the_serial_contact_summed_exactly
     faces_nd, fadj_nd = nd(ti.math.ivec3, faces), nd(ti.math.ivec3, fadj)
     x0 = x.astype(NP_REAL)
     serial_nrm, gathered_nrm = ti.ndarray(VEC3, n), ti.ndarray(VEC3, n)
-    K.layer_normals(nd(VEC3, x0), faces_nd, serial_nrm)
-    PK.layer_normals_gathered(nd(VEC3, x0), faces_nd, *_vertex_lists_nd(faces.ravel(), n),
+    K.vertex_normals(nd(VEC3, x0), faces_nd, serial_nrm)
+    PK.vertex_normals_gathered(nd(VEC3, x0), faces_nd, *_vertex_lists_nd(faces.ravel(), n),
                               gathered_nrm)
     assert np.abs(serial_nrm.to_numpy() - gathered_nrm.to_numpy()).max() < 1e-6
     assert np.allclose(serial_nrm.to_numpy()[:n_inner], [0, 0, 1], atol=0.1)

@@ -117,18 +117,16 @@ def next_rung(options: SimOptions) -> SimOptions | None:
     rejected as unstable: SimOptions.escalated() (the next quality preset up, plain sweeps),
     and from the top preset, once, its steps times ESCALATION_PAST_TOP, sweeps as plain. None
     from steps the caller (or that last rung) gave."""
-    from datagen.sim.simulate import ESCALATED_SOR, OVER_RELAXATION, QUALITY_PRESETS
+    from datagen.sim.simulate import QUALITY_PRESETS
 
     up = options.escalated()
     if up is not None or options.substeps is not None or options.iterations is not None:
         return up
     if options.quality not in QUALITY_PRESETS.get(options.solver, {}):
         return None
-    sor = options.sor if options.sor is not None or options.solver not in OVER_RELAXATION \
-        else ESCALATED_SOR
     sub, it = options.resolve_steps()
     return replace(options, substeps=ESCALATION_PAST_TOP * sub,
-                   iterations=ESCALATION_PAST_TOP * it, sor=sor)
+                   iterations=ESCALATION_PAST_TOP * it, sor=options.escalated_sor())
 
 
 def simulate_within_bounds(garments: list[Garment], body: BodySequence | ColliderTrack | None,

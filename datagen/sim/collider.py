@@ -1,6 +1,7 @@
 """The moving body as a collider: triangles (masked to the parts a garment can reach), their
-edge adjacency for surface tracking, per-frame vertex normals, and a uniform grid (dense, or
-hashed where a batch's lattice would make it large) for the global closest-triangle search."""
+edge adjacency for surface tracking, per-frame vertex normals (computed on the device), and a
+uniform grid (dense, or hashed where a batch's lattice would make it large) for the global
+closest-triangle search."""
 
 from __future__ import annotations
 
@@ -10,20 +11,9 @@ import numpy as np
 import taichi as ti
 
 from datagen.sim import kernels as K
+from datagen.sim import parallel_kernels as PK
 from datagen.sim.backend import init_taichi, serial
 from datagen.sim.precision import NP_REAL, REAL, VEC3
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals (V, 3) of one frame."""
-    t = vertices[faces]
-    fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    n = np.zeros_like(vertices, dtype=np.float64)
-    for k in range(3):
-        for c in range(3):
-            n[:, c] += np.bincount(faces[:, k], weights=fn[:, c], minlength=len(vertices))
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    return (n / np.maximum(norm, 1e-20)).astype(NP_REAL)
 
 
 def face_adjacency(faces: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -73,6 +63,15 @@ class BodyCollider:
         # The body vertices of the colliding faces: the grid spans them (indexing every face
         # corner of a 27k-face body each frame cost a walking t-shirt 8 ms a frame).
         self.used_vertices = np.unique(self.faces_np[self.mask_np])
+        self.used = ti.ndarray(ti.i32, max(len(self.used_vertices), 1))
+        self.used.from_numpy(np.resize(self.used_vertices.astype(np.int32), self.used.shape[0]))
+        self.box = ti.ndarray(VEC3, 2)  # the grid's extent (kernels.collider_bounds)
+        # Parallel backends gather each vertex's face normals (datagen.sim.parallel_kernels).
+        self.vertex_faces = None
+        if normals and not serial():
+            from datagen.sim.solvers import _vertex_lists_nd
+
+            self.vertex_faces = _vertex_lists_nd(self.faces_np.ravel(), n_vertices)
         # A hashed grid's buckets: a power of two, HASH_BUCKETS_PER_TRIANGLE per colliding face.
         wanted = HASH_BUCKETS_PER_TRIANGLE * max(int(self.mask_np.sum()), 512)
         self.hash_buckets = 1 << (wanted - 1).bit_length()
@@ -102,7 +101,7 @@ class BodyCollider:
         self._prev = None
         self.grid_tag = 0  # this collider's grid's number (kernels.nearest_one's frame guards)
 
-    def set_frames(self, v0: np.ndarray, v1: np.ndarray, nrm0=None, nrm1=None) -> None:
+    def set_frames(self, v0: np.ndarray, v1: np.ndarray) -> None:
         """Body positions at the start and end of the coming frame (interpolated in between).
         Consecutive frames share a pose: when v0 is the previous call's v1, its arrays are
         reused instead of uploaded again."""
@@ -120,31 +119,42 @@ class BodyCollider:
             self.n0, self.n1 = self.n1, self.n0
         else:
             self.b0.from_numpy(v0)
-            if self.normals:
-                self.n0.from_numpy(vertex_normals(v0, self.faces_np) if nrm0 is None else nrm0)
+            self._normals(self.b0, self.n0)
         self.v0_np, self.v1_np = v0, v1
-        motion = (v1 - v0).astype(np.float64)
-        self.travel_np = np.linalg.norm(motion, axis=1)
+        # numpy reduces along the first axis of an (N, 3) array ten times slower than along a
+        # contiguous row: the motion is reduced transposed (a walking body's frame spent 1.7 ms
+        # here, and its grid's bounds 1 ms).
+        motion = np.ascontiguousarray((v1 - v0).T, dtype=np.float64)
+        self.fastest_travel = float(np.sqrt(np.max(np.einsum("ci,ci->i", motion, motion))))
         # The body's mean motion over the frame, and each vertex's distance from it: cloth
         # near the torso moves with it (kernels.nearest_one's guards).
-        self.shift_np = motion.mean(axis=0)
-        relative = np.linalg.norm(motion - self.shift_np, axis=1)
-        self.relative_travel.from_numpy(relative.astype(NP_REAL))
+        self.shift_np = motion.mean(axis=1)
+        relative = motion - self.shift_np[:, None]
+        self.relative_travel.from_numpy(
+            np.sqrt(np.einsum("ci,ci->i", relative, relative)).astype(NP_REAL))
         self._at_rest = bool(np.array_equal(v0, v1))
-        if np.array_equal(v0, v1):
+        if self._at_rest:
             self.b1.copy_from(self.b0)
             self.n1.copy_from(self.n0)
         else:
             self.b1.from_numpy(v1)
-            if self.normals:
-                self.n1.from_numpy(vertex_normals(v1, self.faces_np) if nrm1 is None else nrm1)
+            self._normals(self.b1, self.n1)
         self._build_grid()
+
+    def _normals(self, b, n) -> None:
+        """Area-weighted vertex normals n of the body at positions b (both on the device)."""
+        if not self.normals:
+            return
+        if self.vertex_faces is None:
+            K.vertex_normals(b, self.faces, n)
+        else:
+            PK.vertex_normals_gathered(b, self.faces, *self.vertex_faces, n)
 
     def _build_grid(self) -> None:
         self.grid_tag = next(_GRID_TAGS)
-        p0, p1 = self.v0_np[self.used_vertices], self.v1_np[self.used_vertices]
-        lo = np.minimum(p0.min(axis=0), p1.min(axis=0)) - self.cell
-        hi = np.maximum(p0.max(axis=0), p1.max(axis=0)) + self.cell
+        K.collider_bounds(self.b0, self.b1, self.used, self.box, serial())
+        lo, hi = self.box.to_numpy()
+        lo, hi = lo - self.cell, hi + self.cell
         dims = np.maximum(np.ceil((hi - lo) / self.cell).astype(np.int64), 1)
         n_cells = int(np.prod(dims))
         self.hashed = n_cells > DENSE_GRID_CELLS
@@ -173,6 +183,7 @@ class BodyCollider:
             self.counts,
             self.relative_travel,
             self.tbox,
+            serial(),
         )
         K.grid_prefix(self.counts, self.starts, n_cells, self.block_starts)
         total = int(self.starts[n_cells])
@@ -188,6 +199,7 @@ class BodyCollider:
             self.counts,
             self.starts,
             self.items,
+            serial(),
         )
         if not serial():
             K.grid_sort(self.starts, self.items, n_cells)
@@ -222,16 +234,17 @@ class BodyCollider:
                                      float(self.cell), self._sd_out)
         return self._sd_out.to_numpy().astype(np.float64)
 
-    def nearest(self, x, w, tri, s: float, only_untracked: bool = False, guard=None,
+    def nearest(self, x, w, tri, s: float, which: int = K.SEARCH_ALL, guard=None,
                 odo: float = 0.0) -> None:
-        """Reset each cloth vertex's tracked triangle to the closest one within a grid cell
-        (or only find one for vertices that track none and may have come near: `guard` and
-        `odo` as in kernels.nearest_one)."""
+        """Reset the `which` cloth vertices' tracked triangles (kernels.SEARCH_ALL,
+        SEARCH_UNTRACKED, SEARCH_TRACKED) to the closest one within a grid cell; untracked
+        vertices that may not have come near are skipped (`guard` and `odo` as in
+        kernels.nearest_one)."""
         if guard is None:
             guard = self._scratch_guard(x.shape[0])
         K.grid_nearest(x, w, self.b0, self.b1, self.faces, self.origin, self.inv_cell,
                        self.dims, self.starts, self.items, float(s), float(self.cell), tri,
-                       int(only_untracked), guard, float(odo), float(self.grid_tag),
+                       int(which), guard, float(odo), float(self.grid_tag),
                        VEC3(*self.shift_np), self.tbox)
 
     def _scratch_guard(self, n: int):
@@ -246,4 +259,4 @@ class BodyCollider:
     @property
     def max_speed(self) -> float:
         """Fastest body vertex in the current frame, in metres per frame."""
-        return float(self.travel_np.max())
+        return self.fastest_travel

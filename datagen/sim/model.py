@@ -96,6 +96,16 @@ class ClothModel:
         return np.isin(self.spring_kind, (STRUCTURAL, SHEAR)) & ~self.spring_elastic
 
     @functools.cached_property
+    def fabric_strain_terms(self) -> tuple[np.ndarray, ...]:
+        """The fabric springs' (fabric_springs) first and second vertices, rest lengths, the
+        lengths their strain is measured against, and their fabrics' max_strain: gathered once
+        for the QA's strain, which reads them every frame."""
+        select = self.fabric_springs
+        e = self.springs[select]
+        return (np.ascontiguousarray(e[:, 0]), np.ascontiguousarray(e[:, 1]),
+                self.rest_length[select], self.strain_length[select], self.max_strain[select])
+
+    @functools.cached_property
     def limit_length(self) -> np.ndarray:
         """(E,) m: the length past which a fabric spring is held inextensible by the xpbd
         solver (STRAIN_LIMIT_FRACTION of its max_strain); seams and elastic bands have no limit."""

@@ -1,8 +1,8 @@
 """Kernels for parallel backends (a GPU, or several CPU threads) where the serial form is one
 task or sums in the order threads run: the xpbd solver's strain limit after contact (coloured
-sweeps), self-collision (self_collide_parallel), garment-garment collision (its normals and the
-outer garments' pushes: layer_normals_gathered below, and kernels.collide_layers summing in
-fixed point), and the explicit solver's forces (gathered per vertex).
+sweeps), self-collision (self_collide_parallel), vertex normals of the inner garment and of the
+body collider (vertex_normals_gathered below), the outer garments' pushes (kernels.collide_layers
+summing in fixed point), and the explicit solver's forces (gathered per vertex).
 
 The serial form (kernels.limit_after_contact_active) appends to shared lists, so it runs as one
 task on one thread: on a GPU that is one GPU thread walking every limited spring, in every
@@ -29,12 +29,12 @@ from datagen.sim.kernels import (
     collide_one,
     colour_range,
     hash_cell,
-    layer_normal_finish_one,
     limit_after_contact_one,
     self_cell,
     sort_cells,
     spring_force,
     vec3,
+    vertex_normal_finish_one,
 )
 from datagen.sim.precision import REAL
 
@@ -180,7 +180,7 @@ def self_collide_parallel(x: V3, w: F1, owner: I1, rest: V3, counts: I1, starts:
 
 
 # -- garment-garment collision -------------------------------------------------------------------
-# The serial form (kernels.layer_normals, kernels.collide_layers) adds into shared vertices from
+# The serial form (kernels.vertex_normals, kernels.collide_layers) adds into shared vertices from
 # a loop over faces or outer vertices; in parallel those float sums come out in the order threads
 # run, so two runs of the same input differ at the last bit and a contact-rich scene amplifies
 # that (the layered hard case on a GPU: 8.7 mm apart after the settle, 9 cm by the end). Here
@@ -189,8 +189,8 @@ def self_collide_parallel(x: V3, w: F1, owner: I1, rest: V3, counts: I1, starts:
 
 
 @ti.kernel
-def layer_normals_gathered(x: V3, faces: I3, starts: I1, entries: I1, nrm: V3):
-    """kernels.layer_normals with each vertex summing its own faces' area-weighted normals
+def vertex_normals_gathered(x: V3, faces: I3, starts: I1, entries: I1, nrm: V3):
+    """kernels.vertex_normals with each vertex summing its own faces' area-weighted normals
     (entry 3 t + k: corner k of face t is this vertex): one thread per sum, so the sums do not
     depend on how threads are scheduled. (They are not the serial form's bit for bit: the
     compiler may reassociate a sum in a loop.)"""
@@ -201,7 +201,7 @@ def layer_normals_gathered(x: V3, faces: I3, starts: I1, entries: I1, nrm: V3):
             total += (x[f[1]] - x[f[0]]).cross(x[f[2]] - x[f[0]])
         nrm[i] = total
     for i in nrm:
-        layer_normal_finish_one(i, nrm)
+        vertex_normal_finish_one(i, nrm)
 
 
 # -- the explicit solver's forces ----------------------------------------------------------------

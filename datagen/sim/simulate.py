@@ -16,7 +16,7 @@ import numpy as np
 
 from datagen.errors import InputError, RejectedSequence
 from datagen.sim.backend import serial
-from datagen.sim.collider import BodyCollider, vertex_normals
+from datagen.sim.collider import BodyCollider
 from datagen.sim.effects import Effects, SceneContent, resolve_effects
 from datagen.sim.fabrics import Fabric, get_fabric
 from datagen.sim.model import STRAIN_SHARE_MAX, ClothModel, build_cloth_model
@@ -125,9 +125,14 @@ class SimOptions:
         above = names.index(self.quality) + 1 if self.quality in names else len(names)
         if above >= len(names):
             return None
-        sor = self.sor if self.sor is not None or self.solver not in OVER_RELAXATION \
-            else ESCALATED_SOR
-        return replace(self, quality=names[above], sor=sor)
+        return replace(self, quality=names[above], sor=self.escalated_sor())
+
+    def escalated_sor(self) -> float | None:
+        """The over-relaxation of an escalated run: the caller's, else plain sweeps
+        (ESCALATED_SOR) for a solver that over-relaxes."""
+        if self.sor is not None or self.solver not in OVER_RELAXATION:
+            return self.sor
+        return ESCALATED_SOR
 
     def steps_label(self) -> str:
         """'default 20x4, sor 1.6': the settings a run of these options used, in words."""
@@ -210,18 +215,24 @@ def scene_content(garments: list[Garment], has_body: bool, wind, fabrics) -> Sce
 def _fabric_strain(model: ClothModel, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Strain of the fabric springs (ClothModel.fabric_springs) and whether each is beyond its
     fabric's bound."""
-    fabric_springs = model.fabric_springs
-    e = model.springs[fabric_springs]
-    length = np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1)
-    rest = model.rest_length[fabric_springs]
-    strain = (length - rest) / model.strain_length[fabric_springs]
-    return strain, strain > model.max_strain[fabric_springs]
+    first, second, rest, scale, bound = model.fabric_strain_terms
+    # Coordinates as rows: numpy sums along a contiguous row far faster than across the short
+    # axis of an (N, 3) array (a walking t-shirt's frame spent 1.6 ms here).
+    xt = np.ascontiguousarray(x.T)
+    d = xt[:, second] - xt[:, first]
+    length = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    strain = (length - rest) / scale
+    return strain, strain > bound
+
+
+def _row_norms(a: np.ndarray) -> np.ndarray:
+    """|a_i| of an (N, 3) array (np.linalg.norm(a, axis=1), five times faster)."""
+    return np.sqrt(np.einsum("ij,ij->i", a, a))
 
 
 def kinetic_energy(model: ClothModel, v: np.ndarray, lo: int = 0, hi: int | None = None) -> float:
     """Kinetic energy (J) of the vertices lo:hi (all by default)."""
-    v = v[lo:hi]
-    return float(0.5 * np.sum(model.mass[lo:hi] * np.sum(v * v, axis=1)))
+    return 0.5 * float(np.einsum("i,ij,ij->", model.mass[lo:hi], v[lo:hi], v[lo:hi]))
 
 
 def elastic_energy(model: ClothModel, x: np.ndarray, springs: np.ndarray | slice = slice(None),
@@ -303,22 +314,6 @@ def _qa(model: ClothModel, part: _Part, v: np.ndarray, sd: np.ndarray | None,
     return out
 
 
-def signed_distances(x: np.ndarray, body: np.ndarray, faces: np.ndarray, mask: np.ndarray,
-                     normals: np.ndarray) -> np.ndarray:
-    """Signed distance of each cloth vertex to the collider body surface (QA, once per frame)."""
-    import trimesh
-
-    used = np.flatnonzero(mask)
-    mesh = trimesh.Trimesh(body, faces[used], process=False)
-    closest, dist, tri = trimesh.proximity.closest_point(mesh, x)
-    f = faces[used[tri]]
-    bary = trimesh.triangles.points_to_barycentric(body[f], closest)
-    n = np.einsum("pk,pkd->pd", bary, normals[f])
-    sign = np.sign(np.einsum("pd,pd->p", x - closest, n))
-    sign[sign == 0] = 1.0
-    return sign * dist
-
-
 @dataclass
 class ColliderTrack:
     """What the simulator needs of a moving collider: its frames, faces and which faces collide.
@@ -381,7 +376,6 @@ class _Simulation:
             self.faces = np.asarray(body.faces)
             self.mask = np.asarray(body.face_mask, dtype=bool)
             self.collider = BodyCollider(self.faces, self.mask, body.vertices.shape[1])
-            self.normals_cache: dict[int, np.ndarray] = {}
         else:
             self.collider = None
         self.pins = None
@@ -421,15 +415,6 @@ class _Simulation:
         solver.set_state(x, v)
         self._known = None  # stored in the solver's precision: read it back when needed
 
-    def _normals(self, f: int) -> np.ndarray:
-        n = self.normals_cache.get(f)
-        if n is None:
-            n = vertex_normals(self.body.vertices[f], self.faces)
-            if len(self.normals_cache) > 4:
-                self.normals_cache.clear()
-            self.normals_cache[f] = n
-        return n
-
     def _solver(self, substeps: int):
         settings = SolverSettings(
             substeps=substeps,
@@ -450,8 +435,7 @@ class _Simulation:
         if self.collider is None:
             return
         b = self.body.vertices
-        n0, n1 = self._normals(f0), self._normals(f1)
-        self.collider.set_frames(b[f0], b[f1], n0, n1)
+        self.collider.set_frames(b[f0], b[f1])
         if self.pins is not None:
             t0 = self.pins.targets(b[f0].astype(np.float64), self.faces)
             t1 = self.pins.targets(b[f1].astype(np.float64), self.faces)
@@ -463,7 +447,7 @@ class _Simulation:
         if self.body is None:
             return 0.0
         b = self.body.vertices
-        return float(np.linalg.norm(b[f1, vertices] - b[f0, vertices], axis=1).max()) * self.fps
+        return float(_row_norms(b[f1, vertices] - b[f0, vertices]).max()) * self.fps
 
     def _speed_limit(self, body_speed: float) -> float:
         if self.body is None:
@@ -484,7 +468,7 @@ class _Simulation:
         x, v = self._state(solver)
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
             return "non-finite positions"
-        speeds = np.linalg.norm(v, axis=1)
+        speeds = _row_norms(v)
         for k, part in enumerate(self.parts):
             speed = float(speeds[part.lo:part.hi].max())
             body_speed = self._body_speed(f0, f1, part.body)

@@ -204,6 +204,7 @@ class ClothSolver:
         self.friction = _nd(REAL, model.friction.astype(NP_REAL))
         self.tri = _nd(ti.i32, -np.ones(n, np.int32))
         self.guard = _nd(K.GUARD, fresh_guards(n))
+        self._tracking: dict | None = None  # get_tracking's snapshot
         self.odo = 0.0  # metres the body's fastest vertex has travelled (see nearest_one)
         self.contact_n = _nd(VEC3, np.zeros((n, 3), NP_REAL))
         self.contact_v = _nd(VEC3, np.zeros((n, 3), NP_REAL))
@@ -391,7 +392,7 @@ class ClothSolver:
         c.set_frames(path0, path1)
         if search:
             self._run("garment_collision", c.nearest, self.x, self.layer_w, self.layer_tri, 0.0,
-                      False, self.layer_guard, self.layer_odo)
+                      K.SEARCH_TRACKED, self.layer_guard, self.layer_odo)
 
     def end_frame(self, collider) -> None:
         if collider is not None and self.effects.body_collision:
@@ -403,12 +404,13 @@ class ClothSolver:
         if self.use_layers:
             c = self.layer_collider
             self._run("garment_collision", c.nearest, self.x, self.layer_w, self.layer_tri, s1,
-                      True, self.layer_guard, self.layer_odo + s1 * self.layer_travel)
+                      K.SEARCH_UNTRACKED, self.layer_guard,
+                      self.layer_odo + s1 * self.layer_travel)
             if self.parallel:
-                self._run("garment_collision", PK.layer_normals_gathered, self.x, c.faces,
+                self._run("garment_collision", PK.vertex_normals_gathered, self.x, c.faces,
                           *self.layer_vertex_faces, self.layer_nrm)
             else:
-                self._run("garment_collision", K.layer_normals, self.x, c.faces,
+                self._run("garment_collision", K.vertex_normals, self.x, c.faces,
                           self.layer_nrm)
             self._run("garment_collision", K.collide_layers, self.x, self.xp, self.w,
                       self.layer_w, self.layer_tri, c.faces, c.fadj, self.layer_nrm,
@@ -438,20 +440,28 @@ class ClothSolver:
     def get_tracking(self) -> dict:
         """What the collision search knows: tracked triangles, search guards and odometers. A
         solver that takes over a frame (a retry with more substeps) needs it with the state: a
-        guard is only a proof together with the odometer it was measured on."""
-        tracking = {"tri": self.tri.to_numpy(), "guard": self.guard.to_numpy(), "odo": self.odo}
+        guard is only a proof together with the odometer it was measured on. The arrays are
+        copied on the device into this solver's snapshot, which the next call overwrites (a
+        frame takes one before it runs; reading them back cost 0.5 ms a frame)."""
+        kinds = {"tri": ti.i32, "guard": K.GUARD}
         if self.use_layers:
-            tracking.update(layer_tri=self.layer_tri.to_numpy(),
-                            layer_guard=self.layer_guard.to_numpy(), layer_odo=self.layer_odo)
-        return tracking
+            kinds.update(layer_tri=ti.i32, layer_guard=K.GUARD)
+        if self._tracking is None:
+            self._tracking = {name: ti.ndarray(kind, self.n) for name, kind in kinds.items()}
+        for name in kinds:
+            self._tracking[name].copy_from(getattr(self, name))
+        self._tracking["odo"] = self.odo
+        if self.use_layers:
+            self._tracking["layer_odo"] = self.layer_odo
+        return self._tracking
 
     def set_tracking(self, tracking: dict) -> None:
-        self.tri.from_numpy(tracking["tri"])
-        self.guard.from_numpy(tracking["guard"])
+        self.tri.copy_from(tracking["tri"])
+        self.guard.copy_from(tracking["guard"])
         self.odo = tracking["odo"]
         if self.use_layers:
-            self.layer_tri.from_numpy(tracking["layer_tri"])
-            self.layer_guard.from_numpy(tracking["layer_guard"])
+            self.layer_tri.copy_from(tracking["layer_tri"])
+            self.layer_guard.copy_from(tracking["layer_guard"])
             self.layer_odo = tracking["layer_odo"]
 
     def set_pin_targets(self, t0: np.ndarray, t1: np.ndarray) -> None:
@@ -477,8 +487,8 @@ class ClothSolver:
             return
         # Vertices that track no triangle look for one at every substep (cheap: they are far
         # from the body, in empty cells), so fast limbs and falling cloth are caught in time.
-        self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s1, True,
-                  self.guard, self.odo + s1 * collider.max_speed)
+        self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s1,
+                  K.SEARCH_UNTRACKED, self.guard, self.odo + s1 * collider.max_speed)
         self._collide_body(collider, s0, s1, h, self.effects.friction)
 
     def _collide_body(self, collider, s0: float, s1: float, h: float, friction: bool) -> None:
@@ -508,11 +518,12 @@ class ClothSolver:
         )
 
     def search(self, collider, s: float) -> None:
-        """Global closest-triangle search against the body (every SimOptions.search_every
-        frames; between searches vertices follow the triangles they track)."""
+        """Global closest-triangle search against the body for the vertices that track a
+        triangle (every SimOptions.search_every frames; between searches they follow the
+        triangles they track, and the others are searched at every substep)."""
         if collider is not None and self.effects.body_collision:
-            self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s, False,
-                      self.guard, self.odo + s * collider.max_speed)
+            self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s,
+                      K.SEARCH_TRACKED, self.guard, self.odo + s * collider.max_speed)
 
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
         raise NotImplementedError
