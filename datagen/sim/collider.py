@@ -65,7 +65,9 @@ class BodyCollider:
         self.used_vertices = np.unique(self.faces_np[self.mask_np])
         self.used = ti.ndarray(ti.i32, max(len(self.used_vertices), 1))
         self.used.from_numpy(np.resize(self.used_vertices.astype(np.int32), self.used.shape[0]))
-        self.box = ti.ndarray(VEC3, 2)  # the grid's extent (kernels.collider_bounds)
+        # The grid's extent (kernels.collider_bounds). Host arrays, read in place by kernels
+        # on a CPU: a transfer to or from a device array costs 0.09 ms in Taichi's Python.
+        self.box = np.zeros((2, 3), NP_REAL)
         # Parallel backends gather each vertex's face normals (datagen.sim.parallel_kernels).
         self.vertex_faces = None
         if normals and not serial():
@@ -91,8 +93,7 @@ class BodyCollider:
         self.bs0 = ti.ndarray(VEC3, n_vertices)
         self.bs1 = ti.ndarray(VEC3, n_vertices)
         self.ns1 = ti.ndarray(VEC3, n_vertices)
-        self.relative_travel = ti.ndarray(REAL, n_vertices)  # from the mean motion, per frame
-        self.relative_travel.fill(0.0)
+        self.relative_travel = np.zeros(n_vertices, NP_REAL)  # from the mean motion, per frame
         self.tbox = ti.ndarray(K.GUARD, len(self.faces_np))  # per triangle (K.grid_count)
         self.shift_np = np.zeros(3)
         self._n_cells_alloc = 0
@@ -130,8 +131,7 @@ class BodyCollider:
         # near the torso moves with it (kernels.nearest_one's guards).
         self.shift_np = motion.mean(axis=1)
         relative = motion - self.shift_np[:, None]
-        self.relative_travel.from_numpy(
-            np.sqrt(np.einsum("ci,ci->i", relative, relative)).astype(NP_REAL))
+        self.relative_travel = np.sqrt(np.einsum("ci,ci->i", relative, relative)).astype(NP_REAL)
         self._at_rest = bool(np.array_equal(v0, v1))
         if self._at_rest:
             self.b1.copy_from(self.b0)
@@ -153,8 +153,7 @@ class BodyCollider:
     def _build_grid(self) -> None:
         self.grid_tag = next(_GRID_TAGS)
         K.collider_bounds(self.b0, self.b1, self.used, self.box, serial())
-        lo, hi = self.box.to_numpy()
-        lo, hi = lo - self.cell, hi + self.cell
+        lo, hi = self.box[0] - self.cell, self.box[1] + self.cell
         dims = np.maximum(np.ceil((hi - lo) / self.cell).astype(np.int64), 1)
         n_cells = int(np.prod(dims))
         self.hashed = n_cells > DENSE_GRID_CELLS
@@ -212,10 +211,10 @@ class BodyCollider:
         n = x.shape[0]
         if getattr(self, "_sdt_n", None) != n:
             self._sdt_n = n
-            self._sdt_out = ti.ndarray(REAL, n)
+            self._sdt_out = np.zeros(n, NP_REAL)
         K.signed_distance_to_tracked(x, tri, self.faces, self.b1, self.n1, float(self.cell),
                                      self._sdt_out)
-        return self._sdt_out.to_numpy().astype(np.float64)
+        return self._sdt_out.astype(np.float64)
 
     def signed_distance(self, x: np.ndarray) -> np.ndarray:
         """Signed distance of points (N, 3) to the collider surface at the end of the current
