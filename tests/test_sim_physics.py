@@ -726,6 +726,57 @@ def test_the_body_grid_lists_each_cell_in_triangle_order():
     np.testing.assert_array_equal(items.to_numpy(), np.concatenate(lists))
 
 
+@pytest.mark.parametrize("hashed", [False, True])
+def test_the_one_launch_serial_grid_is_the_three_kernel_grid(hashed, monkeypatch):
+    """Serial backends build the body grid in one launch (grid_build_serial: count, prefix,
+    fill); it must be the grid that grid_count, grid_prefix and grid_fill give, entry for entry
+    and in the same order within each cell (the search keeps the first of equally near
+    triangles), dense or hashed, also when `items` starts too short and is grown, and it must
+    leave every count at zero for the next frame."""
+    import taichi as ti
+    import trimesh
+
+    from datagen.sim import collider as collider_module
+    from datagen.sim import kernels as K
+
+    if hashed:  # one bucket per triangle: many cells share a bucket, some a triangle twice
+        monkeypatch.setattr(collider_module, "DENSE_GRID_CELLS", 0)
+        monkeypatch.setattr(collider_module, "HASH_BUCKETS_PER_TRIANGLE", 1)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    v0 = np.asarray(sphere.vertices, np.float64)
+    v1 = v0 * 1.05 + [0.02, -0.01, 0.03]  # the body grows and moves over the frame
+    faces = np.asarray(sphere.faces)
+    mask = np.ones(len(faces), bool)
+    mask[::7] = False  # triangles the garment cannot reach are not filed
+    collider = BodyCollider(faces, mask, len(v0))
+    collider.items = ti.ndarray(ti.i32, 8)  # far too short: the build must grow it
+    collider._items_alloc = 8
+    collider.set_frames(v0, v1)
+    n_cells = int(np.prod(collider.dims_np)) if not collider.hashed else collider.hash_buckets
+    assert collider.hashed == hashed
+    total = int(collider.starts.to_numpy()[n_cells])
+    serial_starts = collider.starts.to_numpy()[: n_cells + 1]
+    serial_items = collider.items.to_numpy()[:total]
+    assert collider._items_alloc >= total > 8
+    np.testing.assert_array_equal(collider.counts.to_numpy(), 0)
+
+    counts = ti.ndarray(ti.i32, n_cells + 1)
+    starts = ti.ndarray(ti.i32, n_cells + 1)
+    blocks = ti.ndarray(ti.i32, n_cells // K.PREFIX_BLOCK + 2)
+    items = ti.ndarray(ti.i32, total)
+    tbox = ti.ndarray(K.GUARD, len(faces))
+    args = (collider.origin, collider.inv_cell, collider.dims)
+    K.grid_count(collider.b0, collider.b1, collider.faces, collider.mask, *args, counts,
+                 collider.relative_travel, tbox, True)
+    K.grid_prefix(counts, starts, n_cells, blocks)
+    K.grid_fill(collider.mask, tbox, *args, counts, starts, items, True)
+    np.testing.assert_array_equal(serial_starts, starts.to_numpy()[: n_cells + 1])
+    np.testing.assert_array_equal(serial_items, items.to_numpy())
+    np.testing.assert_array_equal(collider.tbox.to_numpy(), tbox.to_numpy())
+    if hashed:
+        assert len(serial_items) > mask.sum()  # buckets shared, triangles in several cells
+
+
 def test_colouring_gives_each_colour_vertex_disjoint_elements():
     """Coloured sweeps (parallel backends) update a colour's elements at once, which is exact
     Gauss-Seidel only if no two of them share a vertex."""

@@ -119,7 +119,7 @@ class BodyCollider:
             self.b0, self.b1 = self.b1, self.b0
             self.n0, self.n1 = self.n1, self.n0
         else:
-            self.b0.from_numpy(v0)
+            K.copy_in(v0, self.b0, serial())
             self._normals(self.b0, self.n0)
         self.v0_np, self.v1_np = v0, v1
         # numpy reduces along the first axis of an (N, 3) array ten times slower than along a
@@ -134,10 +134,10 @@ class BodyCollider:
         self.relative_travel = np.sqrt(np.einsum("ci,ci->i", relative, relative)).astype(NP_REAL)
         self._at_rest = bool(np.array_equal(v0, v1))
         if self._at_rest:
-            self.b1.copy_from(self.b0)
-            self.n1.copy_from(self.n0)
+            K.copy_in(self.b0, self.b1, serial())
+            K.copy_in(self.n0, self.n1, serial())
         else:
-            self.b1.from_numpy(v1)
+            K.copy_in(v1, self.b1, serial())
             self._normals(self.b1, self.n1)
         self._build_grid()
 
@@ -171,6 +171,9 @@ class BodyCollider:
         self.inv_cell = float(1.0 / self.cell)
         self.dims = ti.math.ivec3(*dims.astype(np.int32))
         self.dims_np = dims.astype(np.int32)
+        if serial():
+            self._build_grid_serial(n_cells)
+            return
         K.grid_count(
             self.b0,
             self.b1,
@@ -200,10 +203,23 @@ class BodyCollider:
             self.items,
             serial(),
         )
-        if not serial():
-            K.grid_sort(self.starts, self.items, n_cells)
+        K.grid_sort(self.starts, self.items, n_cells)
         # grid_fill used counts as cursors; they must be zero for the next frame's counting.
         self.counts.fill(0)
+
+    def _build_grid_serial(self, n_cells: int) -> None:
+        """The grid in one launch (kernels.grid_build_serial), again with a longer `items` when
+        it did not fit."""
+        if self.items is None:
+            self._items_alloc = 4 * len(self.faces_np) + 16
+            self.items = ti.ndarray(ti.i32, self._items_alloc)
+        args = (self.b0, self.b1, self.faces, self.mask, self.origin, self.inv_cell, self.dims,
+                n_cells, self.counts, self.relative_travel, self.tbox, self.starts)
+        total = K.grid_build_serial(*args, self.items)
+        if total > self._items_alloc:
+            self._items_alloc = int(total * 1.5) + 16
+            self.items = ti.ndarray(ti.i32, self._items_alloc)
+            K.grid_build_serial(*args, self.items)
 
     def signed_distance_tracked(self, x, tri) -> np.ndarray:
         """Signed distance of the cloth vertices (device arrays) to the triangles they track, at
@@ -213,7 +229,7 @@ class BodyCollider:
             self._sdt_n = n
             self._sdt_out = np.zeros(n, NP_REAL)
         K.signed_distance_to_tracked(x, tri, self.faces, self.b1, self.n1, float(self.cell),
-                                     self._sdt_out)
+                                     self._sdt_out, serial())
         return self._sdt_out.astype(np.float64)
 
     def signed_distance(self, x: np.ndarray) -> np.ndarray:
@@ -230,7 +246,7 @@ class BodyCollider:
         self._sd_x.from_numpy(np.asarray(x, dtype=NP_REAL))
         self.nearest(self._sd_x, self._sd_w, self._sd_tri, 1.0)  # every vertex: a full search
         K.signed_distance_to_tracked(self._sd_x, self._sd_tri, self.faces, self.b1, self.n1,
-                                     float(self.cell), self._sd_out)
+                                     float(self.cell), self._sd_out, serial())
         return self._sd_out.to_numpy().astype(np.float64)
 
     def nearest(self, x, w, tri, s: float, which: int = K.SEARCH_ALL, guard=None,

@@ -890,11 +890,36 @@ def _collide_tracked(
             contact_v[i] = dq / h
 
 
+# On one CPU thread a parallel loop still starts as a task on Taichi's thread pool, about 45 us
+# whatever its size (a 5k-vertex copy: 68 us parallel, 23 us serialized; Taichi's own
+# from_numpy and copy_from 92 and 73 us). The frame's small passes therefore take a `serialize`
+# flag, which serial backends set (backend.serial()), and copy through these kernels.
 @ti.kernel
-def read_state(x: V3, v: V3, out: ti.types.ndarray(dtype=ti.f64, ndim=3)):
+def copy_in(src: V3, dst: V3, serialize: ti.template()):
+    """dst = src, for vec3 arrays (src may be a host array: a CPU reads it in place)."""
+    ti.loop_config(serialize=serialize)
+    for i in range(src.shape[0]):
+        dst[i] = src[i]
+
+
+@ti.kernel
+def copy_tracking(tri: I1, guard: V8, tri_out: I1, guard_out: V8, serialize: ti.template()):
+    """tri_out, guard_out = tri, guard: a frame's snapshot of the collision tracking (for a
+    retry) and its restore, in one launch."""
+    ti.loop_config(serialize=serialize)
+    for i in range(tri.shape[0]):
+        tri_out[i] = tri[i]
+        guard_out[i] = guard[i]
+
+
+@ti.kernel
+def read_state(x: V3, v: V3, out: ti.types.ndarray(dtype=ti.f64, ndim=3),
+               serialize: ti.template()):
     """Positions and velocities into out[0] and out[1] (a host array, float64): one launch
-    instead of two device-to-host copies and two conversions (0.2 ms a frame)."""
-    for i in x:
+    instead of two device-to-host copies and two conversions (0.2 ms a frame). `serialize` on
+    serial backends (see copy_in)."""
+    ti.loop_config(serialize=serialize)
+    for i in range(x.shape[0]):
         for c in ti.static(range(3)):
             out[0, i, c] = ti.cast(x[i][c], ti.f64)
             out[1, i, c] = ti.cast(v[i][c], ti.f64)
@@ -990,14 +1015,16 @@ def vertex_normals(x: V3, faces: I3, nrm: V3):
     face uses): the inner garment's at its current positions, the body collider's per frame.
     Serial backends only: the faces add into shared vertices in the order threads run
     (parallel_kernels.vertex_normals_gathered sums per vertex instead)."""
-    for i in nrm:
-        vertex_normal_clear_one(i, nrm)
     # Serialized, the adds are plain stores instead of atomics: 4x faster on one CPU thread
-    # (0.4 ms for a body's 27k faces).
+    # (0.4 ms for a body's 27k faces); and a parallel loop costs about 45 us to start there.
+    ti.loop_config(serialize=True)
+    for i in range(nrm.shape[0]):
+        vertex_normal_clear_one(i, nrm)
     ti.loop_config(serialize=True)
     for t in range(faces.shape[0]):
         vertex_normal_add_one(t, x, faces, nrm)
-    for i in nrm:
+    ti.loop_config(serialize=True)
+    for i in range(nrm.shape[0]):
         vertex_normal_finish_one(i, nrm)
 
 
@@ -1191,6 +1218,32 @@ def grid_cell(c: ti.math.ivec3, dims: ti.math.ivec3) -> ti.i32:
     return cid
 
 
+@ti.func
+def count_triangle(
+    t: ti.i32, b0: V3, b1: V3, faces: I3, origin: vec3, inv_cell: REAL, dims: ti.math.ivec3,
+    counts: I1, travel: F1, tbox: V8,
+):
+    """Triangle t's box swept over the frame into tbox[t], and one more in each cell it
+    overlaps (grid_count)."""
+    f = faces[t]
+    lo = ti.min(
+        ti.min(ti.min(b0[f[0]], b0[f[1]]), ti.min(b0[f[2]], b1[f[0]])),
+        ti.min(b1[f[1]], b1[f[2]]),
+    )
+    hi = ti.max(
+        ti.max(ti.max(b0[f[0]], b0[f[1]]), ti.max(b0[f[2]], b1[f[0]])),
+        ti.max(b1[f[1]], b1[f[2]]),
+    )
+    speed = ti.max(travel[f[0]], travel[f[1]], travel[f[2]])
+    tbox[t] = GUARD(lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], speed, 0.0)
+    c0 = first_cell(lo, origin, inv_cell)
+    c1 = last_cell(hi, origin, inv_cell, dims)
+    for cx in range(c0[0], c1[0] + 1):
+        for cy in range(c0[1], c1[1] + 1):
+            for cz in range(c0[2], c1[2] + 1):
+                ti.atomic_add(counts[grid_cell(ti.math.ivec3(cx, cy, cz), dims)], 1)
+
+
 @ti.kernel
 def grid_count(
     b0: V3,
@@ -1212,23 +1265,7 @@ def grid_count(
     ti.loop_config(serialize=serialize)
     for t in range(faces.shape[0]):
         if mask[t] != 0:
-            f = faces[t]
-            lo = ti.min(
-                ti.min(ti.min(b0[f[0]], b0[f[1]]), ti.min(b0[f[2]], b1[f[0]])),
-                ti.min(b1[f[1]], b1[f[2]]),
-            )
-            hi = ti.max(
-                ti.max(ti.max(b0[f[0]], b0[f[1]]), ti.max(b0[f[2]], b1[f[0]])),
-                ti.max(b1[f[1]], b1[f[2]]),
-            )
-            speed = ti.max(travel[f[0]], travel[f[1]], travel[f[2]])
-            tbox[t] = GUARD(lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], speed, 0.0)
-            c0 = first_cell(lo, origin, inv_cell)
-            c1 = last_cell(hi, origin, inv_cell, dims)
-            for cx in range(c0[0], c1[0] + 1):
-                for cy in range(c0[1], c1[1] + 1):
-                    for cz in range(c0[2], c1[2] + 1):
-                        ti.atomic_add(counts[grid_cell(ti.math.ivec3(cx, cy, cz), dims)], 1)
+            count_triangle(t, b0, b1, faces, origin, inv_cell, dims, counts, travel, tbox)
 
 
 # Cells per block of the grid's prefix sum: blocks are summed in parallel, their sums prefixed
@@ -1282,6 +1319,29 @@ def grid_prefix(counts, starts, n_cells: int, block_starts) -> None:
     prefix_fill(counts, block_starts, starts, n_cells)
 
 
+@ti.func
+def file_triangle(
+    t: ti.i32, tbox: V8, origin: vec3, inv_cell: REAL, dims: ti.math.ivec3, counts: I1,
+    starts: I1, items: I1, step: ti.template(),
+):
+    """File triangle t in each cell its box overlaps, at the cell's cursor in `counts`, which
+    moves by `step`: +1 fills a cell upwards from its start (cursors from zero), -1 downwards
+    from its end (cursors from the cell's count, which end at zero)."""
+    tb = tbox[t]
+    lo = vec3(tb[0], tb[1], tb[2])
+    hi = vec3(tb[3], tb[4], tb[5])
+    c0 = first_cell(lo, origin, inv_cell)
+    c1 = last_cell(hi, origin, inv_cell, dims)
+    for cx in range(c0[0], c1[0] + 1):
+        for cy in range(c0[1], c1[1] + 1):
+            for cz in range(c0[2], c1[2] + 1):
+                cell = grid_cell(ti.math.ivec3(cx, cy, cz), dims)
+                slot = ti.atomic_add(counts[cell], step)
+                if ti.static(step < 0):
+                    slot += step
+                items[starts[cell] + slot] = t
+
+
 @ti.kernel
 def grid_fill(
     mask: I1,
@@ -1299,17 +1359,52 @@ def grid_fill(
     ti.loop_config(serialize=serialize)
     for t in range(mask.shape[0]):
         if mask[t] != 0:
-            tb = tbox[t]
-            lo = vec3(tb[0], tb[1], tb[2])
-            hi = vec3(tb[3], tb[4], tb[5])
-            c0 = first_cell(lo, origin, inv_cell)
-            c1 = last_cell(hi, origin, inv_cell, dims)
-            for cx in range(c0[0], c1[0] + 1):
-                for cy in range(c0[1], c1[1] + 1):
-                    for cz in range(c0[2], c1[2] + 1):
-                        cell = grid_cell(ti.math.ivec3(cx, cy, cz), dims)
-                        slot = ti.atomic_add(counts[cell], 1)
-                        items[starts[cell] + slot] = t
+            file_triangle(t, tbox, origin, inv_cell, dims, counts, starts, items, 1)
+
+
+@ti.kernel
+def grid_build_serial(
+    b0: V3,
+    b1: V3,
+    faces: I3,
+    mask: I1,
+    origin: vec3,
+    inv_cell: REAL,
+    dims: ti.math.ivec3,
+    n_cells: ti.i32,
+    counts: I1,
+    travel: F1,
+    tbox: V8,
+    starts: I1,
+    items: I1,
+) -> ti.i32:
+    """grid_count, grid_prefix and grid_fill in one launch, for serial backends (their seven
+    launches and a read of the total cost about 0.8 ms a frame in Taichi's Python there; this one
+    0.1-0.2 ms for the tube's cylinder). The same grid to the last entry: triangles filed in
+    descending order, each cell filled downwards from its end, list each cell in ascending
+    order as the serial grid_fill does. Returns the number of entries; where `items` is too
+    short for them nothing is filed (the caller grows it and calls again). `counts` end at zero
+    either way."""
+    ti.loop_config(serialize=True)
+    for t in range(faces.shape[0]):
+        if mask[t] != 0:
+            count_triangle(t, b0, b1, faces, origin, inv_cell, dims, counts, travel, tbox)
+    run = 0
+    ti.loop_config(serialize=True)
+    for c in range(n_cells):
+        starts[c] = run
+        run += counts[c]
+    starts[n_cells] = run
+    if run > items.shape[0]:
+        for c in range(n_cells):
+            counts[c] = 0
+    else:
+        n_faces = faces.shape[0]
+        for m in range(n_faces):
+            t = n_faces - 1 - m
+            if mask[t] != 0:
+                file_triangle(t, tbox, origin, inv_cell, dims, counts, starts, items, -1)
+    return run
 
 
 @ti.func
@@ -1801,10 +1896,13 @@ def xpbd_frame(
 
 
 @ti.kernel
-def signed_distance_to_tracked(x: V3, tri: I1, faces: I3, b: V3, n: V3, far: REAL, out: F1):
+def signed_distance_to_tracked(x: V3, tri: I1, faces: I3, b: V3, n: V3, far: REAL, out: F1,
+                               serialize: ti.template()):
     """Signed distance of each vertex to its (already found) closest collider triangle, using the
-    interpolated vertex normals for the sign; `far` where no triangle is near."""
-    for i in x:
+    interpolated vertex normals for the sign; `far` where no triangle is near. `serialize` on
+    serial backends (see copy_in)."""
+    ti.loop_config(serialize=serialize)
+    for i in range(x.shape[0]):
         t = tri[i]
         d = far
         if t >= 0:

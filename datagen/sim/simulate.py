@@ -177,7 +177,8 @@ class _Pins:
         return np.stack([e1, np.cross(n, e1), n], axis=1)
 
     def targets(self, body: np.ndarray, faces: np.ndarray) -> np.ndarray:
-        corners = body[faces[self.triangles]]
+        """The pins' positions (P, 3), float64, on the body pose `body` (V, 3)."""
+        corners = body[faces[self.triangles]].astype(np.float64)  # only the pins' corners
         point = np.einsum("pk,pkd->pd", self.bary, corners)
         return point + np.einsum("pid,pi->pd", self.frames(corners), self.local)
 
@@ -379,6 +380,7 @@ class _Simulation:
         else:
             self.collider = None
         self.pins = None
+        self._pins_at: dict[int, np.ndarray] = {}  # _pin_targets
         self.fixed_pins = None
         if self.effects.pins and len(self.model.pinned):
             if body is not None:
@@ -437,15 +439,26 @@ class _Simulation:
         b = self.body.vertices
         self.collider.set_frames(b[f0], b[f1])
         if self.pins is not None:
-            t0 = self.pins.targets(b[f0].astype(np.float64), self.faces)
-            t1 = self.pins.targets(b[f1].astype(np.float64), self.faces)
-            solver.set_pin_targets(t0, t1)
+            solver.set_pin_targets(self._pin_targets(f0), self._pin_targets(f1))
+
+    def _pin_targets(self, frame: int) -> np.ndarray:
+        """The pins' targets on the body at `frame`, kept for the last two frames asked for
+        (a frame's end is the next frame's start, and a retried frame asks again)."""
+        known = self._pins_at.get(frame)
+        if known is None:
+            known = self.pins.targets(self.body.vertices[frame], self.faces)
+            self._pins_at = {f: t for f, t in self._pins_at.items() if f >= frame - 1}
+            self._pins_at[frame] = known
+        return known
 
     def _body_speed(self, f0: int, f1: int, vertices: slice = slice(None)) -> float:
         """The body's fastest vertex between two frames (m/s; 0 without a body), among
-        `vertices` (a scene's body in a batch)."""
+        `vertices` (a scene's body in a batch). A scene simulated alone reads it from the
+        collider, which measured it in set_frames (_set_body runs first)."""
         if self.body is None:
             return 0.0
+        if len(self.parts) == 1:
+            return self.collider.max_speed * self.fps
         b = self.body.vertices
         return float(_row_norms(b[f1, vertices] - b[f0, vertices]).max()) * self.fps
 

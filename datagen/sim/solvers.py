@@ -242,8 +242,10 @@ class ClothSolver:
         self.n_pins = len(model.pinned) if effects.pins else 0
         if self.n_pins:
             self.pin_idx = _nd(ti.i32, model.pinned.astype(np.int32))
-            self.pin_t0 = ti.ndarray(VEC3, self.n_pins)
-            self.pin_t1 = ti.ndarray(VEC3, self.n_pins)
+            # Host arrays (set_pin_targets): a CPU reads them in place, where an upload to a
+            # device array cost 0.1 ms each in Taichi's Python (a GPU copies them per launch).
+            self.pin_t0 = np.zeros((self.n_pins, 3), NP_REAL)
+            self.pin_t1 = np.zeros((self.n_pins, 3), NP_REAL)
         pairs, lengths = model.tethers if self.n_pins and self.uses_tethers else (None, ())
         self.n_tethers = len(lengths)
         if self.n_tethers:
@@ -433,7 +435,7 @@ class ClothSolver:
     def get_state(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions and velocities (float64 copies)."""
         out = np.empty((2, self.n, 3))
-        K.read_state(self.x, self.v, out)
+        K.read_state(self.x, self.v, out, serial())
         return out[0], out[1]
 
     def set_state(self, x: np.ndarray, v: np.ndarray) -> None:
@@ -451,26 +453,27 @@ class ClothSolver:
             kinds.update(layer_tri=ti.i32, layer_guard=K.GUARD)
         if self._tracking is None:
             self._tracking = {name: ti.ndarray(kind, self.n) for name, kind in kinds.items()}
-        for name in kinds:
-            self._tracking[name].copy_from(getattr(self, name))
-        self._tracking["odo"] = self.odo
+        t = self._tracking
+        K.copy_tracking(self.tri, self.guard, t["tri"], t["guard"], serial())
+        t["odo"] = self.odo
         if self.use_layers:
-            self._tracking["layer_odo"] = self.layer_odo
-        return self._tracking
+            K.copy_tracking(self.layer_tri, self.layer_guard, t["layer_tri"], t["layer_guard"],
+                            serial())
+            t["layer_odo"] = self.layer_odo
+        return t
 
     def set_tracking(self, tracking: dict) -> None:
-        self.tri.copy_from(tracking["tri"])
-        self.guard.copy_from(tracking["guard"])
+        K.copy_tracking(tracking["tri"], tracking["guard"], self.tri, self.guard, serial())
         self.odo = tracking["odo"]
         if self.use_layers:
-            self.layer_tri.copy_from(tracking["layer_tri"])
-            self.layer_guard.copy_from(tracking["layer_guard"])
+            K.copy_tracking(tracking["layer_tri"], tracking["layer_guard"], self.layer_tri,
+                            self.layer_guard, serial())
             self.layer_odo = tracking["layer_odo"]
 
     def set_pin_targets(self, t0: np.ndarray, t1: np.ndarray) -> None:
         if self.n_pins:
-            self.pin_t0.from_numpy(np.asarray(t0, NP_REAL))
-            self.pin_t1.from_numpy(np.asarray(t1, NP_REAL))
+            self.pin_t0 = np.ascontiguousarray(t0, NP_REAL)
+            self.pin_t1 = np.ascontiguousarray(t1, NP_REAL)
 
     # -- timing ------------------------------------------------------------------------------
     def _run(self, effect: str, fn, *args) -> None:
@@ -700,7 +703,7 @@ class XPBDSolver(ClothSolver):
             self.lam_b = ti.ndarray(VEC3, 1)
         if not self.n_pins:
             self.pin_idx = _nd(ti.i32, np.zeros(1, np.int32))
-            self.pin_t0 = self.pin_t1 = ti.ndarray(VEC3, 1)
+            self.pin_t0 = self.pin_t1 = np.zeros((1, 3), NP_REAL)
         if not self.n_tethers:
             self.tethers = _nd(ti.math.ivec2, np.zeros((1, 2), np.int32))
             self.tether_len = _nd(REAL, np.zeros(1, NP_REAL))
