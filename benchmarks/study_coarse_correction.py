@@ -342,6 +342,7 @@ def chain_sweep_ms(scene_name: str, resolution: str, fabric: str, lengths: tuple
     solver = XPBDSolver(model, Effects(pins=bool(len(model.pinned))),
                         SolverSettings(substeps=substeps, iterations=2))
     h = 1.0 / FPS / substeps
+    solver._use_step(h)  # the bends' terms for this step
     x = solver.x.to_numpy().astype(np.float64)
     springs, chains = [], []
     for s in solver.sets.values():
@@ -361,7 +362,7 @@ def chain_sweep_ms(scene_name: str, resolution: str, fabric: str, lengths: tuple
             CK.chains_gauss_seidel(solver.x, solver.xp, solver.w, *args, h, 0, 1.0)
 
     def bend() -> None:
-        K.bends_gauss_seidel(*solver._bend_args(), solver.stiff_bends, 0, h, 0, 1.0, False)
+        K.bends_gauss_seidel(*solver._bend_args(), solver.stiff_bends, 0, 0, 1.0, False)
 
     out = []
     for fn in (sweep, chain, bend):

@@ -922,6 +922,62 @@ def test_stiff_bends_swept_every_iteration_follow_the_converged_swing_closer(mon
         assert len(solver.stiff_bend_ids(h)) == pytest.approx(share * len(model.bends)), fabric
 
 
+def test_a_bending_sweep_is_the_xpbd_update_computed_in_float64():
+    """The bending sweep reads each stencil's per-step terms (compliance over h^2, damping
+    over h, the inverse of the update's denominator) and its vertices' inverse masses times
+    their weights from arrays set once per step (XPBDSolver._use_step). One sweep over a
+    crumpled, moving sheet with pinned vertices must be the XPBD update written out in float64
+    (Macklin et al. 2016: dlambda = (-C - alpha~ lambda - gamma k.(x - xp)) / ((1 + gamma)
+    sum w k^2 + alpha~), x += w k dlambda, stencil after stencil), and a stencil whose four
+    vertices are pinned must not move."""
+    from datagen.sim import kernels as K
+
+    sheet = grid_sheet(12, 0.3, 0.5, fabric="denim")
+    model = build_cloth_model([(sheet, FABRICS["denim"])])
+    pinned = np.flatnonzero(model.x0[:, 1] >= model.x0[:, 1].max() - 0.06)  # two rows
+    model = replace(model, pinned=pinned)  # inverse masses zero there
+    solver = make_solver("xpbd", model, Effects(body_collision=False, pins=True),
+                         SolverSettings(substeps=20, iterations=2))
+    rng = np.random.default_rng(5)
+    xp = model.x0 + rng.normal(scale=0.004, size=model.x0.shape)
+    x = xp + rng.normal(scale=0.002, size=xp.shape)
+    lam = rng.normal(scale=1e-4, size=(solver.n_bends, 3))
+    h = 1.0 / 30 / 20
+    solver._use_step(h)
+    solver.x.from_numpy(x.astype(np.float32))
+    solver.xp.from_numpy(xp.astype(np.float32))
+    solver.lam_b.from_numpy(lam.astype(np.float32))
+    K.bends_gauss_seidel(*solver._bend_args(), solver.stiff_bends, 0, 0, 1.0, False)
+
+    w = solver.w_np.astype(np.float64)
+    k_all = model.bend_weights[solver.bend_order]
+    stiff = model.bend_stiffness[solver.bend_order]
+    beta = model.bend_beta[solver.bend_order]
+    x_ref, lam_ref = x.copy(), lam.copy()
+    fixed = 0
+    for b, s in enumerate(solver.bends_np):
+        k = k_all[b]
+        wsum = float(np.sum(k * k * w[s]))
+        if wsum == 0.0:
+            fixed += 1
+            continue
+        alpha = 1.0 / (stiff[b] * h * h)
+        gamma = beta[b] / h
+        c = k @ x_ref[s]
+        rate = k @ (x_ref[s] - xp[s])
+        dl = (-c - alpha * lam_ref[b] - gamma * rate) / ((1.0 + gamma) * wsum + alpha)
+        lam_ref[b] += dl
+        x_ref[s] += (w[s] * k)[:, None] * dl
+    assert fixed > 0  # stencils inside the pinned rows
+    got = solver.x.to_numpy().astype(np.float64)
+    moved = np.abs(x_ref - x).max()
+    assert moved > 1e-4  # the sweep does move the sheet
+    np.testing.assert_allclose(got, x_ref, atol=2e-6 * max(moved, 1.0) + 1e-6)
+    np.testing.assert_array_equal(got[pinned], x[pinned].astype(np.float32))
+    np.testing.assert_allclose(solver.lam_b.to_numpy(), lam_ref, rtol=1e-3,
+                               atol=1e-3 * np.abs(lam_ref).max())
+
+
 def test_one_xpbd_iteration_stays_stable_at_first_contact():
     """A 1 cm cotton sheet dropped on a sphere with one XPBD iteration per substep. With the
     bending sweep after the springs, its damping undid their corrections where the sheet first

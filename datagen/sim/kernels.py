@@ -458,69 +458,51 @@ def moved_by_limit(q: ti.i32, nv: ti.i32, lists: I1) -> ti.i32:
 
 
 @ti.func
-def bend_delta(
-    x: V3, xp: V3, w: F1, bends: I4, kw: V4, comp: F1, beta: F1, lam_b: V3, b: ti.i32,
-    inv_h: REAL,
-) -> vec3:
-    """XPBD update of the (linear, vector-valued) bending constraint b: its dlambda."""
+def bend_delta(x: V3, xp: V3, bends: I4, kk: V8, bstep: V4, lam_b: V3, b: ti.i32) -> vec3:
+    """XPBD update of the (linear, vector-valued) bending constraint b: its dlambda. `kk[b]`
+    holds the stencil's weights k and then each vertex's inverse mass times its weight;
+    `bstep[b]` the step's compliance over h^2, damping over h and the inverse of the update's
+    denominator (XPBDSolver._use_step; zero where all four vertices are pinned). With these
+    per step the sweep leaves no division and no inverse mass to gather: a tube's bends, each
+    sharing a vertex with the one before, swept in 11.1 ns a stencil instead of 14.8. (The
+    damping's rate stays k . (x - xp): written as c - k . xp it was 1 ns faster, but the two
+    large terms cancel, and in float32 the tube then left the old trajectory 0.19 mm at frame
+    1, where rounding alone moves it microns.)"""
     s = bends[b]
-    k = kw[b]
+    k = kk[b]
+    p = bstep[b]
     c = k[0] * x[s[0]] + k[1] * x[s[1]] + k[2] * x[s[2]] + k[3] * x[s[3]]
-    wsum = (
-        k[0] * k[0] * w[s[0]]
-        + k[1] * k[1] * w[s[1]]
-        + k[2] * k[2] * w[s[2]]
-        + k[3] * k[3] * w[s[3]]
+    rate = (
+        k[0] * (x[s[0]] - xp[s[0]])
+        + k[1] * (x[s[1]] - xp[s[1]])
+        + k[2] * (x[s[2]] - xp[s[2]])
+        + k[3] * (x[s[3]] - xp[s[3]])
     )
-    out = vec3(0.0)
-    if wsum > 0.0:
-        alpha = comp[b] * (inv_h * inv_h)
-        gamma = beta[b] * inv_h
-        rate = (
-            k[0] * (x[s[0]] - xp[s[0]])
-            + k[1] * (x[s[1]] - xp[s[1]])
-            + k[2] * (x[s[2]] - xp[s[2]])
-            + k[3] * (x[s[3]] - xp[s[3]])
-        )
-        out = (-c - alpha * lam_b[b] - gamma * rate) / ((1.0 + gamma) * wsum + alpha)
-    return out
+    return p[2] * (-c - p[0] * lam_b[b] - p[1] * rate)
 
 
 @ti.func
 def bend_gs_one(
-    b: ti.i32,
-    x: V3,
-    xp: V3,
-    w: F1,
-    bends: I4,
-    kw: V4,
-    comp: F1,
-    beta: F1,
-    lam_b: V3,
-    inv_h: REAL,
-    omega: REAL,
+    b: ti.i32, x: V3, xp: V3, bends: I4, kk: V8, bstep: V4, lam_b: V3, omega: REAL,
 ):
-    dl = omega * bend_delta(x, xp, w, bends, kw, comp, beta, lam_b, b, inv_h)
+    dl = omega * bend_delta(x, xp, bends, kk, bstep, lam_b, b)
     lam_b[b] += dl
     s = bends[b]
-    k = kw[b]
+    k = kk[b]
     for q in ti.static(range(4)):
-        x[s[q]] += w[s[q]] * k[q] * dl
+        x[s[q]] += k[4 + q] * dl
 
 
 @ti.kernel
 def bends_gauss_seidel(
     x: V3,
     xp: V3,
-    w: F1,
     bends: I4,
-    kw: V4,
-    comp: F1,
-    beta: F1,
+    kk: V8,
+    bstep: V4,
     lam_b: V3,
     listed: I1,
     n_listed: ti.i32,
-    h: REAL,
     reverse: ti.i32,
     omega: REAL,
     only_listed: ti.template(),
@@ -530,13 +512,12 @@ def bends_gauss_seidel(
     n = bends.shape[0]
     if ti.static(only_listed):
         n = n_listed
-    inv_h = 1.0 / h
     ti.loop_config(serialize=True)
     for m in range(n):
         b = sweep_order(m, n, reverse)
         if ti.static(only_listed):
             b = listed[b]
-        bend_gs_one(b, x, xp, w, bends, kw, comp, beta, lam_b, inv_h, omega)
+        bend_gs_one(b, x, xp, bends, kk, bstep, lam_b, omega)
 
 
 # Coloured Gauss-Seidel (parallel backends): the elements of a sweep are grouped by colour, no
@@ -587,15 +568,12 @@ def springs_coloured(
 def bends_coloured(
     x: V3,
     xp: V3,
-    w: F1,
     bends: I4,
-    kw: V4,
-    comp: F1,
-    beta: F1,
+    kk: V8,
+    bstep: V4,
     lam_b: V3,
     order: I1,
     colour_ptr: I1,
-    h: REAL,
     reverse: ti.i32,
     omega: REAL,
     n_colours: ti.template(),
@@ -605,7 +583,7 @@ def bends_coloured(
     for c in ti.static(range(n_colours)):
         r = colour_range(c, n_colours, reverse, colour_ptr)
         for k in range(r[0], r[1]):
-            bend_gs_one(order[k], x, xp, w, bends, kw, comp, beta, lam_b, 1.0 / h, omega)
+            bend_gs_one(order[k], x, xp, bends, kk, bstep, lam_b, omega)
 
 
 @ti.kernel
@@ -1663,9 +1641,8 @@ def xpbd_frame(
     lam: F1,
     set_ranges: I2,
     bends: I4,
-    kw: V4,
-    bcomp: F1,
-    bbeta: F1,
+    bend_kk: V8,
+    bend_step: V4,
     lam_b: V3,
     stiff_bends: I1,
     pin_idx: I1,
@@ -1722,8 +1699,9 @@ def xpbd_frame(
 ):
     """All substeps of one frame of the XPBD solver in one serial launch: the same per-element
     functions, in the same order, as the per-effect kernels (which profiling runs use), without
-    a Python round trip per kernel. Its 64 non-template arguments are Taichi's limit on x64: a
-    new array has to share one with another (as `adj` and `lists` pack several)."""
+    a Python round trip per kernel. It takes 63 non-template arguments, one short of Taichi's
+    limit on x64 (64): a new array may have to share one with another (as `adj` and `lists`
+    pack several)."""
     h = P[P_H]
     inv_h = 1.0 / h  # the sweeps scale compliance and damping by it, never dividing by h
     omega = P[P_OMEGA]
@@ -1794,7 +1772,7 @@ def xpbd_frame(
                 b = sweep_order(m, nb, reverse)
                 if it > 0:
                     b = stiff_bends[b]
-                bend_gs_one(b, x, xp, w, bends, kw, bcomp, bbeta, lam_b, inv_h, omega_b)
+                bend_gs_one(b, x, xp, bends, bend_kk, bend_step, lam_b, omega_b)
             for si in range(n_sets):
                 lo = set_ranges[si][0]
                 hi = set_ranges[si][1]

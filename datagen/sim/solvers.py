@@ -570,9 +570,15 @@ class XPBDSolver(ClothSolver):
         self.gauss_seidel = not self.parallel
         self._stiff_h: float | None = None
         self.n_stiff_bends = 0
-        if self.n_bends:  # each bend's generalised inverse mass (see STIFF_BEND_RATIO)
-            kw2 = model.bend_weights[self.bend_order].astype(np.float64) ** 2
-            self.bend_inv_mass = (kw2 * self.w_np.astype(np.float64)[self.bends_np]).sum(axis=1)
+        if self.n_bends:
+            kw = model.bend_weights[self.bend_order].astype(np.float64)
+            wk = self.w_np.astype(np.float64)[self.bends_np] * kw
+            # Each bend's generalised inverse mass (see STIFF_BEND_RATIO).
+            self.bend_inv_mass = (wk * kw).sum(axis=1)
+            # The sweeps' weights and each vertex's inverse mass times its weight
+            # (kernels.bend_delta).
+            self.bend_kk = _nd(K.GUARD, np.concatenate([kw, wk], axis=1).astype(NP_REAL))
+            self.bend_step = ti.ndarray(VEC4, self.n_bends)  # _use_step
         self.stiff_bends = _nd(ti.i32, np.zeros(1, np.int32))
         if not self.gauss_seidel:  # a parallel backend: coloured sweeps
             self.spring_colours = {
@@ -700,6 +706,8 @@ class XPBDSolver(ClothSolver):
             self.bends = _nd(ti.math.ivec4, np.zeros((1, 4), np.int32))
             self.kw = _nd(VEC4, np.zeros((1, 4), NP_REAL))
             self.bcomp = self.bbeta = _nd(REAL, np.zeros(1, NP_REAL))
+            self.bend_kk = _nd(K.GUARD, np.zeros((1, 8), NP_REAL))
+            self.bend_step = _nd(VEC4, np.zeros((1, 4), NP_REAL))
             self.lam_b = ti.ndarray(VEC3, 1)
         if not self.n_pins:
             self.pin_idx = _nd(ti.i32, np.zeros(1, np.int32))
@@ -721,9 +729,19 @@ class XPBDSolver(ClothSolver):
         return np.flatnonzero(stiff).astype(np.int32)
 
     def _use_step(self, h: float) -> None:
-        """Upload the stiff bends for step h (once per step size: retries change it)."""
+        """Upload the stiff bends and the bends' per-step terms for step h (once per step size:
+        retries change it)."""
         if h == self._stiff_h:
             return
+        if self.n_bends:
+            # kernels.bend_delta: compliance over h^2, damping over h, and the inverse of the
+            # update's denominator (zero where all four vertices are pinned: nothing moves).
+            alpha = 1.0 / (self.model.bend_stiffness[self.bend_order] * h * h)
+            gamma = self.model.bend_beta[self.bend_order] / h
+            den = (1.0 + gamma) * self.bend_inv_mass + alpha
+            inv = np.divide(1.0, den, out=np.zeros_like(den), where=self.bend_inv_mass > 0.0)
+            terms = np.stack([alpha, gamma, inv, np.zeros_like(inv)], axis=1)
+            self.bend_step.from_numpy(terms.astype(NP_REAL))
         ids = self.stiff_bend_ids(h)
         self.n_stiff_bends = len(ids)
         self.stiff_bends = _nd(ti.i32, ids if len(ids) else np.zeros(1, np.int32))
@@ -788,7 +806,7 @@ class XPBDSolver(ClothSolver):
             self.f_springs, self.f_rest, self.f_limit, self.f_comp_t, self.f_comp_c, self.f_beta,
             self.f_lam,
             self.f_ranges,
-            self.bends, self.kw, self.bcomp, self.bbeta, self.lam_b, self.stiff_bends,
+            self.bends, self.bend_kk, self.bend_step, self.lam_b, self.stiff_bends,
             self.pin_idx, self.pin_t0, self.pin_t1, self.tethers, self.tether_len,
             self.tri, c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, c.bs0, c.bs1, c.ns1,
             self.thickness, self.friction, self.contact_n, self.contact_v,
@@ -916,15 +934,15 @@ class XPBDSolver(ClothSolver):
         fused kernel). benchmarks/study_bend_block.py replaces it with an exact solve."""
         if self.n_bends and it == 0:
             self._run("bending", K.bends_gauss_seidel, *self._bend_args(),
-                      self.stiff_bends, self.n_stiff_bends, h, reverse, sor, False)
+                      self.stiff_bends, self.n_stiff_bends, reverse, sor, False)
         elif self.n_stiff_bends:
             self._run("bending", K.bends_gauss_seidel, *self._bend_args(),
-                      self.stiff_bends, self.n_stiff_bends, h, reverse, 1.0, True)
+                      self.stiff_bends, self.n_stiff_bends, reverse, 1.0, True)
 
     def _bend_args(self) -> tuple:
-        """The bending kernels' leading arguments (positions, stencils, weights, compliance,
-        damping, multipliers), shared by the serial and the coloured sweeps."""
-        return (self.x, self.xp, self.w, self.bends, self.kw, self.bcomp, self.bbeta, self.lam_b)
+        """The bending kernels' leading arguments (positions, stencils, weights, the step's
+        terms, multipliers), shared by the serial and the coloured sweeps."""
+        return (self.x, self.xp, self.bends, self.bend_kk, self.bend_step, self.lam_b)
 
     def _sweep_sor(self, reverse: int) -> float:
         """The over-relaxation of a sweep in this direction (SolverSettings.plain_reverse)."""
@@ -940,7 +958,7 @@ class XPBDSolver(ClothSolver):
         elif self.n_stiff_bends:
             bends, omega = self.stiff_bend_colours, 1.0  # not over-relaxed (see the fused kernel)
         if bends is not None:
-            self._run("bending", K.bends_coloured, *self._bend_args(), bends.order, bends.ptr, h,
+            self._run("bending", K.bends_coloured, *self._bend_args(), bends.order, bends.ptr,
                       reverse, omega, bends.n_colours)
         for name, s in self.sets.items():
             c = self.spring_colours[name]
