@@ -1660,6 +1660,7 @@ def xpbd_frame(
     bs0: V3,
     bs1: V3,
     ns1: V3,
+    body_used: I1,
     thickness: F1,
     friction: F1,
     contact_n: V3,
@@ -1699,9 +1700,8 @@ def xpbd_frame(
 ):
     """All substeps of one frame of the XPBD solver in one serial launch: the same per-element
     functions, in the same order, as the per-effect kernels (which profiling runs use), without
-    a Python round trip per kernel. It takes 63 non-template arguments, one short of Taichi's
-    limit on x64 (64): a new array may have to share one with another (as `adj` and `lists`
-    pack several)."""
+    a Python round trip per kernel. Its 64 non-template arguments are Taichi's limit on x64: a
+    new array has to share one with another (as `adj` and `lists` pack several)."""
     h = P[P_H]
     inv_h = 1.0 / h  # the sweeps scale compliance and damping by it, never dividing by h
     omega = P[P_OMEGA]
@@ -1788,8 +1788,10 @@ def xpbd_frame(
         for t in range(n_tethers):
             tether_one(t, x, tethers, tether_len)
         if ti.static(use_collision):
-            # The body at this substep's start and end, once, instead of per cloth vertex.
-            for j in range(b0.shape[0]):
+            # The body at this substep's start and end, once, instead of per cloth vertex, at
+            # the colliding faces' vertices (a walking body's 9,313 of 13,348).
+            for u in range(body_used.shape[0]):
+                j = body_used[u]
                 bs0[j] = lerp3(b0[j], b1[j], s0)
                 bs1[j] = lerp3(b0[j], b1[j], s1)
                 ns1[j] = lerp3(n0[j], n1[j], s1)
