@@ -370,7 +370,7 @@ def main(argv: list[str] | None = None) -> None:
         "",
         f"10k-vertex garment on the walking body (the 1 cm t-shirt, {outfit['vertices']} "
         f"vertices, 60 frames from the study's settled start on the motion's first pose): "
-        f"one simulation on one thread, **{rate:.2f} simulated seconds per wall-clock "
+        f"one simulation on one thread, **{rate:.3f} simulated seconds per wall-clock "
         f"second**; two simulations of it at once, one per core (how a dataset run uses the "
         f"machine), **{pair['rate_all']:.3f}** in all, the median of {PAIR_REPEATS} pairs "
         f"({pairs[0]['rate_all']:.3f}-{pairs[-1]['rate_all']:.3f}; the median pair's runs "
