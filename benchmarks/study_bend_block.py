@@ -53,6 +53,13 @@ VARIANTS = [("sweeps", 20, 2), ("sweeps", 30, 2), ("sweeps", 40, 2), ("exact", 1
             ("exact first", 18, 2), ("exact first", 20, 2)]
 
 
+def bend_compliance(solver: XPBDSolver) -> np.ndarray:
+    """Each bending stencil's compliance (1 / stiffness), in the solver's sweep order, rounded
+    to the solver's precision as its kernels see it (float64 for scipy)."""
+    stiffness = solver.model.bend_stiffness[solver.bend_order]
+    return (1.0 / stiffness).astype(NP_REAL).astype(np.float64)
+
+
 class ExactBendBlock:
     """The bending block of one solver, factored for one step size."""
 
@@ -66,7 +73,7 @@ class ExactBendBlock:
                                shape=(n_bends, solver.n))
         self.free = np.flatnonzero(w > 0)  # pinned vertices do not move
         self.Bf = self.B[:, self.free].tocsr()
-        self.alpha = solver.bcomp.to_numpy().astype(np.float64) / (h * h)
+        self.alpha = bend_compliance(solver) / (h * h)
         self.gamma = solver.bbeta.to_numpy().astype(np.float64) / h
         self.d_inv = (1.0 + self.gamma) / self.alpha
         a = sp.diags(1.0 / w[self.free]) + self.Bf.T @ sp.diags(self.d_inv) @ self.Bf

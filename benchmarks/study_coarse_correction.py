@@ -58,7 +58,12 @@ import taichi as ti
 import datagen.sim.simulate as simulate_module
 from benchmarks import chain_kernels as CK
 from benchmarks.bench_sim import PEER_JSON
-from benchmarks.study_bend_block import ExactBendBlock, SweepsXPBD, solve_against_sweep
+from benchmarks.study_bend_block import (
+    ExactBendBlock,
+    SweepsXPBD,
+    bend_compliance,
+    solve_against_sweep,
+)
 from benchmarks.study_warm_start import (
     LONG_FRAMES,
     _Fibres,
@@ -240,7 +245,7 @@ class CoarseBends:
         label = label.ravel()
         self.P = sp.csr_matrix((np.ones(nb), (np.arange(nb), label)), shape=(nb, label.max() + 1))
         self.WBtP = (sp.diags(solver.w_np.astype(np.float64)) @ self.B.T @ self.P).tocsr()
-        self.alpha_unit = solver.bcomp.to_numpy().astype(np.float64)
+        self.alpha_unit = bend_compliance(solver)
         self.beta = solver.bbeta.to_numpy().astype(np.float64)
         self.h = 0.0
 

@@ -126,7 +126,8 @@ class BodyCollider:
         # contiguous row: the motion is reduced transposed (a walking body's frame spent 1.7 ms
         # here, and its grid's bounds 1 ms).
         motion = np.ascontiguousarray((v1 - v0).T, dtype=np.float64)
-        self.fastest_travel = float(np.sqrt(np.max(np.einsum("ci,ci->i", motion, motion))))
+        self.travel_sq = np.einsum("ci,ci->i", motion, motion)
+        self.fastest_travel = float(np.sqrt(self.travel_sq.max()))
         # The body's mean motion over the frame, and each vertex's distance from it: cloth
         # near the torso moves with it (kernels.nearest_one's guards).
         self.shift_np = motion.mean(axis=1)
@@ -164,7 +165,9 @@ class BodyCollider:
             self._n_cells_alloc = int((n_cells + 1) * 1.5)
             self.counts = ti.ndarray(ti.i32, self._n_cells_alloc)
             self.starts = ti.ndarray(ti.i32, self._n_cells_alloc + 1)
-            self.block_starts = ti.ndarray(ti.i32, self._n_cells_alloc // K.PREFIX_BLOCK + 2)
+            if not serial():  # the parallel prefix's block sums (K.grid_prefix)
+                self.block_starts = ti.ndarray(ti.i32,
+                                               self._n_cells_alloc // K.PREFIX_BLOCK + 2)
             self.counts.fill(0)
         self.origin = VEC3(*lo.astype(NP_REAL))
         self.origin_np = lo.astype(np.float64)
@@ -275,3 +278,8 @@ class BodyCollider:
     def max_speed(self) -> float:
         """Fastest body vertex in the current frame, in metres per frame."""
         return self.fastest_travel
+
+    def fastest_travel_among(self, vertices: slice) -> float:
+        """How far the fastest of `vertices` (a scene's body in a batch) travels in the
+        current frame, in metres."""
+        return float(np.sqrt(self.travel_sq[vertices].max()))

@@ -451,16 +451,13 @@ class _Simulation:
             self._pins_at[frame] = known
         return known
 
-    def _body_speed(self, f0: int, f1: int, vertices: slice = slice(None)) -> float:
-        """The body's fastest vertex between two frames (m/s; 0 without a body), among
-        `vertices` (a scene's body in a batch). A scene simulated alone reads it from the
-        collider, which measured it in set_frames (_set_body runs first)."""
+    def _body_speed(self, vertices: slice) -> float:
+        """The speed of the body's fastest vertex over the current frame (m/s; 0 without a
+        body), among `vertices` (a scene's body in a batch), as the collider measured it when
+        _set_body gave it the frame."""
         if self.body is None:
             return 0.0
-        if len(self.parts) == 1:
-            return self.collider.max_speed * self.fps
-        b = self.body.vertices
-        return float(_row_norms(b[f1, vertices] - b[f0, vertices]).max()) * self.fps
+        return self.collider.fastest_travel_among(vertices) * self.fps
 
     def _speed_limit(self, body_speed: float) -> float:
         if self.body is None:
@@ -484,7 +481,7 @@ class _Simulation:
         speeds = _row_norms(v)
         for k, part in enumerate(self.parts):
             speed = float(speeds[part.lo:part.hi].max())
-            body_speed = self._body_speed(f0, f1, part.body)
+            body_speed = self._body_speed(part.body)
             limit = self._speed_limit(body_speed)
             if speed > limit:
                 return f"{part.label}runaway velocity {speed:.1f} m/s (limit {limit:.1f})"

@@ -236,7 +236,6 @@ class ClothSolver:
             self.bends = _nd(ti.math.ivec4, self.bends_np)
             self.kw = _nd(VEC4, model.bend_weights[b].astype(NP_REAL))
             self.bstiff = _nd(REAL, model.bend_stiffness[b].astype(NP_REAL))
-            self.bcomp = _nd(REAL, (1.0 / model.bend_stiffness[b]).astype(NP_REAL))
             self.bbeta = _nd(REAL, model.bend_beta[b].astype(NP_REAL))
             self.lam_b = ti.ndarray(VEC3, self.n_bends)
         self.n_pins = len(model.pinned) if effects.pins else 0
@@ -448,10 +447,10 @@ class ClothSolver:
         guard is only a proof together with the odometer it was measured on. The arrays are
         copied on the device into this solver's snapshot, which the next call overwrites (a
         frame takes one before it runs; reading them back cost 0.5 ms a frame)."""
-        kinds = {"tri": ti.i32, "guard": K.GUARD}
-        if self.use_layers:
-            kinds.update(layer_tri=ti.i32, layer_guard=K.GUARD)
         if self._tracking is None:
+            kinds = {"tri": ti.i32, "guard": K.GUARD}
+            if self.use_layers:
+                kinds.update(layer_tri=ti.i32, layer_guard=K.GUARD)
             self._tracking = {name: ti.ndarray(kind, self.n) for name, kind in kinds.items()}
         t = self._tracking
         K.copy_tracking(self.tri, self.guard, t["tri"], t["guard"], serial())
@@ -705,7 +704,7 @@ class XPBDSolver(ClothSolver):
         if not self.n_bends:
             self.bends = _nd(ti.math.ivec4, np.zeros((1, 4), np.int32))
             self.kw = _nd(VEC4, np.zeros((1, 4), NP_REAL))
-            self.bcomp = self.bbeta = _nd(REAL, np.zeros(1, NP_REAL))
+            self.bbeta = _nd(REAL, np.zeros(1, NP_REAL))
             self.bend_kk = _nd(K.GUARD, np.zeros((1, 8), NP_REAL))
             self.bend_step = _nd(VEC4, np.zeros((1, 4), NP_REAL))
             self.lam_b = ti.ndarray(VEC3, 1)
