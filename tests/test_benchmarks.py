@@ -33,6 +33,16 @@ def test_the_committed_peer_rows_cover_every_peer_scene():
     assert all(r["blender_err_mm"] > 0 and r["ours_s_per_sim_s"] > 0 for r in data["rows"])
     # Blender's error is against a run that is itself checked: quality 320 against 160
     assert all(r["blender_ref_halving_mm"] >= 0 for r in data["rows"])
+    # At Blender's error both simulators' errors are means over the same starts, the bound
+    # Blender's mean, and the chosen setting's mean within it.
+    for r in data["rows"]:
+        starts = r["blender_err_starts_mm"]
+        assert len(starts) == len(bench_sim.ERROR_STARTS) and starts[0] == r["blender_err_mm"]
+        assert r["blender_err_mean_mm"] == pytest.approx(sum(starts) / len(starts))
+        chosen = r["at_error"]
+        if chosen["steps"] is not None:
+            lo, hi = chosen["err_range_mm"]
+            assert lo <= chosen["err_mm"] <= hi and chosen["err_mm"] <= r["blender_err_mean_mm"]
 
 
 def _study_tube():
