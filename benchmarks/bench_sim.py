@@ -120,13 +120,13 @@ def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
     }
     row["speedup"] = row["blender_s_per_sim_s"] / row["ours_s_per_sim_s"]
     # Blender's error over ERROR_STARTS (the first is the timed run's own start).
+    twins = [short_from(short, p) for p in ERROR_STARTS]
     starts = [row["blender_err_mm"]] + [
-        1000 * rms_distance(peer.run_blender(short_from(short, p), BLENDER_QUALITY)
-                            .positions[:n], b_conv, h)
-        for p in ERROR_STARTS[1:]]
+        1000 * rms_distance(peer.run_blender(twin, BLENDER_QUALITY).positions[:n], b_conv, h)
+        for twin in twins[1:]]
     row["blender_err_starts_mm"] = starts
     row["blender_err_mean_mm"] = float(np.mean(starts))
-    row["at_error"] = fastest_at_error(timed_scene, short, ref, h, row["blender_err_mean_mm"],
+    row["at_error"] = fastest_at_error(timed_scene, twins, ref, h, row["blender_err_mean_mm"],
                                        {(sub, it): row["ours_err_mm"]})
     if row["at_error"]["steps"] is not None:
         row["at_error"]["speedup"] = (row["blender_s_per_sim_s"]
@@ -143,16 +143,16 @@ def short_from(short_scene, perturb: float):
                        frames=short_scene.frames, perturb=perturb)
 
 
-def fastest_at_error(timed_scene, short_scene, ref, horizon: int, bound_mm: float,
+def fastest_at_error(timed_scene, twins: list, ref, horizon: int, bound_mm: float,
                      known: dict[tuple[int, int], float]) -> dict:
     """The fastest xpbd settings of AT_ERROR_STEPS whose error against `ref` is no larger than
     `bound_mm` (Blender's against its own converged run, the mean over ERROR_STARTS; `steps`
-    None where none is), with every setting's error, each the mean over ERROR_STARTS; `known`
-    gives errors already measured from the scene's own start (the default's, from the row).
+    None where none is), with every setting's error, each the mean over the short scene's
+    `twins` (one per ERROR_STARTS, the scene itself first); `known` gives errors already
+    measured from the scene's own start (the default's, from the row).
     Each qualifying setting is timed once to choose, and the choice timed again for the
     figure (a minimum over noisy times would flatter it)."""
     n = ERROR_FRAMES + 1
-    twins = [short_from(short_scene, p) for p in ERROR_STARTS]
     errors, spread = {}, {}
     for sub, it in AT_ERROR_STEPS:
         each = []
