@@ -501,3 +501,21 @@ def test_a_regenerated_page_keeps_the_hand_written_state_of_the_study(tmp_path):
     assert page.index("## The table") < page.index("## How the study got here")
     assert page.rstrip().endswith("**Measured once (first session).** Long ago.")
     assert page.index("Measured by hand.") < page.index("## The scenes")
+
+
+def test_blenders_converged_quality_is_per_scene_so_other_parts_stay_reported():
+    """Raising Blender's converged quality for some scenes (the sheets' quality 40 was not
+    converged) changes only those scenes' part signatures: the other parts, measured at the
+    old quality, stay reportable as measured with an earlier simulator, not dropped."""
+    from dataclasses import replace
+
+    from datagen.study.sweep import _plan_signature, earlier_simulator, full_plan
+
+    plan = full_plan()
+    assert plan.blender_converged_for("sheet_sphere") == 320
+    assert plan.blender_converged_for("tshirt_walk") == plan.blender_converged == 40
+    old = replace(plan, blender_converged_by_scene={})
+    for scene, kept in (("tshirt_walk", True), ("sheet_sphere", False)):
+        saved = {**_plan_signature(old, scene), "simulator": "0" * 16}
+        assert earlier_simulator({"signature": saved}, _plan_signature(plan, scene)) == kept
+        assert _plan_signature(plan, scene)["blender_converged"] == (40 if kept else 320)
