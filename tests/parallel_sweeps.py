@@ -5,10 +5,10 @@ one (a GPU's form of the solver, run on this CPU's threads).
 Usage: python tests/parallel_sweeps.py MODE OUT.npz, MODE one of
   serial    the CPU default (one thread, Gauss-Seidel sweeps in one launch per frame)
   coloured  the parallel backend's kernels on one thread: serial() overridden in every module
-            that reads it (solvers, simulate, collider), so that the two runs launch the same
-            kernels (the collider's serial forms, its one-launch grid and serialized passes,
-            may round differently on some CPUs: the coarse tube 0.2 mm apart at frame 12 on
-            one AMD EPYC)
+            that reads it (solvers, simulate and collider today), so that the two runs launch
+            the same kernels (the collider's serial forms, its one-launch grid and serialized
+            passes, may round differently on some CPUs: the coarse tube 0.2 mm apart at frame
+            12 on one AMD EPYC)
   threads   coloured sweeps on two threads (DATAGEN_TI_THREADS=2 set by the caller), and
             test_sim_batch's three scenes batched, against each simulated alone where the
             batch put it and against the batch on a hashed body grid
@@ -23,11 +23,17 @@ import numpy as np
 
 
 def main(mode: str, out: str) -> None:
-    from datagen.sim import collider, solvers
-    from datagen.sim import simulate as simulate_module
+    from datagen.sim import backend, solvers
+    from datagen.sim import simulate as simulate_module  # imports every module that reads it
 
     if mode == "coloured":  # every kernel, sweeps and presets a parallel backend gets
-        solvers.serial = simulate_module.serial = collider.serial = lambda: False
+        # Each module imports serial() by name: rebind it wherever it is, not in a list of
+        # modules that a new reader would silently escape.
+        original = backend.serial
+        for module in list(sys.modules.values()):
+            if getattr(module, "serial", None) is original:
+                module.serial = lambda: False
+        assert not simulate_module.serial()
     from datagen.sim.scenes import grid_sheet
     from datagen.sim.scenes import tube as tube_garment
     from datagen.sim.simulate import SimOptions, simulate
