@@ -512,10 +512,41 @@ def test_blenders_converged_quality_is_per_scene_so_other_parts_stay_reported():
     from datagen.study.sweep import _plan_signature, earlier_simulator, full_plan
 
     plan = full_plan()
-    assert plan.blender_converged_for("sheet_sphere") == 320
-    assert plan.blender_converged_for("tshirt_walk") == plan.blender_converged == 40
-    old = replace(plan, blender_converged_by_scene={})
+    assert {plan.blender_converged_for(s) for s, _ in plan.scenes} == {320}
+    old = replace(plan, blender_converged=40, blender_converged_by_scene={})
+    new = replace(old, blender_converged_by_scene={"sheet_sphere": 320})
+    assert new.blender_converged_for("tshirt_walk") == 40
     for scene, kept in (("tshirt_walk", True), ("sheet_sphere", False)):
         saved = {**_plan_signature(old, scene), "simulator": "0" * 16}
-        assert earlier_simulator({"signature": saved}, _plan_signature(plan, scene)) == kept
-        assert _plan_signature(plan, scene)["blender_converged"] == (40 if kept else 320)
+        assert earlier_simulator({"signature": saved}, _plan_signature(new, scene)) == kept
+        assert _plan_signature(new, scene)["blender_converged"] == (40 if kept else 320)
+
+
+def test_blenders_series_checks_its_converged_run_against_half_its_quality(monkeypatch):
+    """Each part says how far Blender's "converged" run is from half its quality, reusing a
+    timed quality's run when it is that half. A fake Blender that lands 0.32 m / quality off
+    the reference puts quality 5 at 64 mm, 10 at 32 mm: 32 mm apart."""
+    from types import SimpleNamespace
+
+    from datagen.study import blender as peer
+    from datagen.study.run import Run
+    from datagen.study.sweep import blender_series, quick_plan
+
+    ref = np.zeros((4, 6, 3))
+    calls: list[int] = []
+
+    def fake_blender(scene, quality):
+        calls.append(quality)
+        positions = ref.copy()
+        positions[..., 0] += 0.32 / quality
+        return Run(f"blender q{quality}", positions, 1.0, 0.1, {})
+
+    monkeypatch.setattr(peer, "run_blender", fake_blender)
+    plan = quick_plan()  # converged at quality 10, timed quality 5
+    scene = SimpleNamespace(n_vertices=6)
+    gap, halving, rows = blender_series(scene, "sheet_sphere", "cotton", "coarse", plan, ref,
+                                        horizon=4, pred=3, log=lambda _: None)
+    assert sorted(calls) == [5, 10]  # quality 5 is the half and a timed run: run once
+    assert halving == {"quality": 5, "against": 10, "mm": pytest.approx(32.0)}
+    assert gap == pytest.approx(32.0)  # the converged run against our reference
+    assert [r.substeps for r in rows] == [5] and rows[0].rms_mm == pytest.approx(32.0)

@@ -373,9 +373,14 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
                      "Blender's error is against its own highest affordable quality; the "
                      "distance between that converged run and ours is the model difference:")
         lines.append("")
+        halvings = summary.get("blender_halving", {})
         for key, mm in gap.items():
+            half = halvings.get(key)
+            check = (f"; Blender quality {half['quality']} against its quality "
+                     f"{half['against']} (is that run converged?) {_fmt(half['mm'], 2)} mm"
+                     if half else "; Blender's halving not measured (the part predates it)")
             lines.append(f"- {key}: Blender converged vs ours converged {_fmt(mm, 1)} mm RMS "
-                         "over the predictable horizon")
+                         f"over the predictable horizon{check}")
         lines += ["", *comparison(rows, presets)]
         table = equal_error_speed(rows)
         if table:
