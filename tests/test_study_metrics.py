@@ -550,3 +550,23 @@ def test_blenders_series_checks_its_converged_run_against_half_its_quality(monke
     assert halving == {"quality": 5, "against": 10, "mm": pytest.approx(32.0)}
     assert gap == pytest.approx(32.0)  # the converged run against our reference
     assert [r.substeps for r in rows] == [5] and rows[0].rms_mm == pytest.approx(32.0)
+
+
+def test_the_page_gives_each_parts_blender_halving_or_says_it_was_not_measured(tmp_path):
+    import json
+
+    from datagen.study.sweep import main_cli
+
+    part, path, _ = _one_finished_part(tmp_path)
+    doc = tmp_path / "page.md"
+    for halving, expected in (
+            ({"quality": 160, "against": 320, "mm": 0.26},
+             "Blender quality 160 against its quality 320 (is that run converged?) 0.26 mm"),
+            (None, "Blender's halving not measured (the part predates it)")):
+        path.write_text(json.dumps({**part, "blender_vs_ours_mm": 28.9,
+                                    "blender_halving": halving}))
+        main_cli(str(tmp_path), quick=False, blender=False, doc=str(doc), command="test",
+                 measure=False)
+        line = next(ln for ln in doc.read_text().splitlines()
+                    if ln.startswith(f"- {part['key']}: Blender converged vs ours"))
+        assert "28.9 mm RMS" in line and line.endswith(expected)
