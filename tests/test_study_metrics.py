@@ -505,21 +505,44 @@ def test_a_regenerated_page_keeps_the_hand_written_state_of_the_study(tmp_path):
 
 def test_blenders_converged_quality_is_per_scene_so_other_parts_stay_reported():
     """Raising Blender's converged quality for some scenes (the sheets' quality 40 was not
-    converged) changes only those scenes' part signatures: the other parts, measured at the
-    old quality, stay reportable as measured with an earlier simulator, not dropped."""
-    from dataclasses import replace
-
-    from datagen.study.sweep import _plan_signature, earlier_simulator, full_plan
+    converged) changes only those scenes' part signatures, and a part measured at the old
+    quality stays reportable, marked, not dropped; one from another plan is not."""
+    from datagen.study.sweep import _plan_signature, earlier_simulator, full_plan, measured_earlier
 
     plan = full_plan()
     assert {plan.blender_converged_for(s) for s, _ in plan.scenes} == {320}
     old = replace(plan, blender_converged=40, blender_converged_by_scene={})
     new = replace(old, blender_converged_by_scene={"sheet_sphere": 320})
     assert new.blender_converged_for("tshirt_walk") == 40
-    for scene, kept in (("tshirt_walk", True), ("sheet_sphere", False)):
+    for scene, same_quality in (("tshirt_walk", True), ("sheet_sphere", False)):
         saved = {**_plan_signature(old, scene), "simulator": "0" * 16}
-        assert earlier_simulator({"signature": saved}, _plan_signature(new, scene)) == kept
-        assert _plan_signature(new, scene)["blender_converged"] == (40 if kept else 320)
+        now = _plan_signature(new, scene)
+        # only a part at the same Blender quality can stand for today's (carried over)
+        assert earlier_simulator({"signature": saved}, now) == same_quality
+        assert measured_earlier({"signature": saved}, now)
+        assert now["blender_converged"] == (40 if same_quality else 320)
+    saved = _plan_signature(old, "sheet_sphere")
+    assert not measured_earlier({"signature": saved}, saved)  # today's: reusable, not earlier
+    assert not measured_earlier({"signature": {**saved, "reference_levels": 7}},
+                                _plan_signature(plan, "sheet_sphere"))
+
+
+def test_a_part_against_an_earlier_blender_quality_is_reported_and_named(tmp_path):
+    import json
+
+    from datagen.study.sweep import main_cli
+
+    part, path, _ = _one_finished_part(tmp_path)
+    path.write_text(json.dumps({**part, "signature": {**part["signature"], "simulator": "0" * 16,
+                                                      "blender_converged": 40}}))
+    doc = tmp_path / "page.md"
+    summary = main_cli(str(tmp_path), quick=False, blender=False, doc=str(doc), command="test",
+                       measure=False)
+    assert summary["earlier_simulator_parts"] == [part["key"]]
+    assert summary["earlier_blender_converged"] == {part["key"]: 40}
+    assert part["key"] not in summary["missing_parts"]
+    assert (f"**Blender's rows against an earlier converged run: {part['key']} (quality 40).**"
+            in doc.read_text())
 
 
 def test_blenders_series_checks_its_converged_run_against_half_its_quality(monkeypatch):

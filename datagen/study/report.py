@@ -255,6 +255,12 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
             f"**Measured with an earlier version of the simulator: "
             f"{', '.join(summary['earlier_simulator_parts'])}.** Their figures (errors and "
             "times) stand for that version; `--part` measures them again with this one."]),
+        *([] if not summary.get("earlier_blender_converged") else [
+            "",
+            "**Blender's rows against an earlier converged run: " + ", ".join(
+                f"{key} (quality {q})" for key, q in summary["earlier_blender_converged"].items())
+            + ".** Their Blender errors are measured against that quality, not against this "
+            "plan's, and their halving was not checked."]),
         *([] if not summary.get("carried_over_parts") else [
             "",
             f"**Carried over: {', '.join(summary['carried_over_parts'])}** were measured "

@@ -317,6 +317,20 @@ def earlier_simulator(part: dict, signature: dict) -> bool:
         == {k: v for k, v in signature.items() if k != "simulator"})
 
 
+# What may differ in a saved part that is still reported (marked) instead of dropped: the
+# simulator's sources and Blender's converged quality, which name what the figures stand for.
+EARLIER_KEYS = ("simulator", "blender_converged")
+
+
+def measured_earlier(part: dict, signature: dict) -> bool:
+    """A saved part measured under this plan by another version of the simulator, or against
+    another Blender converged quality: its figures stand for those, and are reported so."""
+    saved = part["signature"]
+    return saved != signature and (
+        {k: v for k, v in saved.items() if k not in EARLIER_KEYS}
+        == {k: v for k, v in signature.items() if k not in EARLIER_KEYS})
+
+
 def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_blender: bool,
              log) -> dict:
     """One scene and fabric: its reference ladder, its predictable horizon, our sweep and
@@ -430,6 +444,7 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
     from datagen.study.fingerprint import part_fingerprint
 
     parts, missing, earlier, carried = [], [], [], []
+    earlier_blender: dict[str, int] = {}
     for scene_name, resolution in plan.scenes:
         for fabric in plan.fabrics:
             key = f"{scene_name}/{fabric}"
@@ -449,11 +464,17 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
                     parts.append(part)
                     carried.append(key)
                     continue
-                if not wanted and earlier_simulator(part, signature):
-                    # Reported, and marked: its figures stand for the simulator it measured.
-                    log(f"{key}: {path} was measured with an earlier simulator; reported as such")
+                if not wanted and measured_earlier(part, signature):
+                    # Reported, and marked: its figures stand for the simulator it measured
+                    # and for Blender's converged run that it measured against.
+                    log(f"{key}: {path} was measured with an earlier simulator or Blender "
+                        "reference; reported as such")
                     parts.append(part)
-                    earlier.append(key)
+                    if part["signature"]["simulator"] != signature["simulator"]:
+                        earlier.append(key)
+                    quality = part["signature"].get("blender_converged")
+                    if quality != signature["blender_converged"]:
+                        earlier_blender[key] = quality
                     continue
                 log(f"{key}: {path} was measured under another plan or simulator")
             if not wanted:
@@ -468,6 +489,7 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
     summary = {
         "missing_parts": missing,
         "earlier_simulator_parts": earlier,
+        "earlier_blender_converged": earlier_blender,
         "carried_over_parts": carried,
         "earlier_reference_parts": {p["key"]: p["ladder_sources"] for p in parts
                                     if p.get("ladder_sources")},
