@@ -310,11 +310,17 @@ def same_behaviour(part: dict, signature: dict, have_blender: bool,
             and part["behaviour"] == fingerprint())
 
 
+def _same_but(saved: dict, signature: dict, keys: tuple[str, ...]) -> bool:
+    """Two part signatures that agree on everything except `keys`."""
+    return ({k: v for k, v in saved.items() if k not in keys}
+            == {k: v for k, v in signature.items() if k not in keys})
+
+
 def earlier_simulator(part: dict, signature: dict) -> bool:
     """A saved part measured under this plan by another version of the simulator."""
-    return part["signature"]["simulator"] != signature["simulator"] and (
-        {k: v for k, v in part["signature"].items() if k != "simulator"}
-        == {k: v for k, v in signature.items() if k != "simulator"})
+    saved = part["signature"]
+    return saved["simulator"] != signature["simulator"] and _same_but(saved, signature,
+                                                                      ("simulator",))
 
 
 # What may differ in a saved part that is still reported (marked) instead of dropped: the
@@ -326,9 +332,7 @@ def measured_earlier(part: dict, signature: dict) -> bool:
     """A saved part measured under this plan by another version of the simulator, or against
     another Blender converged quality: its figures stand for those, and are reported so."""
     saved = part["signature"]
-    return saved != signature and (
-        {k: v for k, v in saved.items() if k not in EARLIER_KEYS}
-        == {k: v for k, v in signature.items() if k not in EARLIER_KEYS})
+    return saved != signature and _same_but(saved, signature, EARLIER_KEYS)
 
 
 def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_blender: bool,
