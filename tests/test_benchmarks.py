@@ -321,3 +321,31 @@ def test_the_coarse_study_solves_a_chain_exactly_and_lifts_the_hanging_load():
     assert sag["cold"] > 0.0
     assert abs(sag["chains"]) < 0.1 * sag["cold"], sag  # 3.4 mm cold, 0.02 mm with chains
 
+
+
+def test_the_body_frame_study_splits_what_it_times_and_leaves_the_simulator_as_it_was():
+    """benchmarks/study_body_frame.py times a frame's parts by wrapping the simulator's
+    methods: the body collision's search and contact add up to the body collision the
+    simulator itself counts, the fused frame's parts fit in its time, and the wrappers are gone
+    afterwards (the rest of a test session runs the simulator unwrapped)."""
+    from benchmarks.study_body_frame import measure_setting
+    from datagen.sim import simulate as simulate_module
+    from datagen.sim import solvers
+    from datagen.study.scenes import build_scene
+
+    before = (solvers.ClothSolver._run, solvers.XPBDSolver.advance_frame,
+              solvers.XPBDSolver.search, simulate_module._Simulation._set_body,
+              simulate_module._Simulation._record)
+    scene = build_scene("tube_cylinder", "cotton", "coarse", frames=6)
+    row = measure_setting(scene, 4, 1, per_effect=True)
+    assert (solvers.ClothSolver._run, solvers.XPBDSolver.advance_frame,
+            solvers.XPBDSolver.search, simulate_module._Simulation._set_body,
+            simulate_module._Simulation._record) == before
+    body = row["effects_ms"]["body_collision"]
+    split = row["effect_search_ms"] + row["effect_contact_ms"]
+    assert row["effect_search_ms"] > 0 and row["effect_contact_ms"] > 0
+    # each launch is timed by both, the split from just outside the simulator's own timer
+    assert body <= split <= 1.2 * body + 0.05
+    parts = sum(row[f"{k}_ms"] for k in ("solver", "search", "collider", "qa"))
+    assert row["solver_ms"] > 0 and row["collider_ms"] > 0 and parts <= row["ms_frame"]
+    assert row["bound"] == 0.25 and 0.0 < row["strain_p999"] < 10.0
