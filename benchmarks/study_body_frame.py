@@ -22,7 +22,7 @@ effects (run.PEER_EFFECTS), and prints for each setting:
 
     python -m benchmarks.study_body_frame
 
-About 8 minutes on 2 cores; run it alone (it times). Its table is in docs/simulator.md
+About 2 minutes on 2 cores; run it alone (it times). Its table is in docs/simulator.md
 ("Where a body frame goes").
 """
 
