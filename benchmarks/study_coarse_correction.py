@@ -385,47 +385,30 @@ FRAME_SETTINGS = ["20x2", "10x2", "6x2"]
 
 def frame_parts(fabric: str, after_contact_sweeps: int) -> list[dict]:
     """Where a fused frame's time goes on the tube at FRAME_SETTINGS (60 frames, the second of
-    two runs each): the solver's frame (advance_frame: the substeps and the frame's searches),
-    the collider's frame (_set_body), the QA and outputs (_record), and the rest of the frame
-    loop, in ms per frame, and the run's largest p99.9 strain (what the QA bound measures);
-    with the strain limit after contact capped at
+    two runs each): the solver's frame (advance_frame: the substeps), the collider's frame
+    (_set_body), the QA and outputs (_record), and the rest of the frame loop (its guards,
+    state reads and the full search every fifth frame), in ms per frame, and the run's largest
+    p99.9 strain (what the QA bound measures); with the strain limit after contact capped at
     `after_contact_sweeps` sweeps a substep (a module constant read when the kernels compile,
     so each cap runs in a process of its own: --frame-parts)."""
-    import collections
-
-    from datagen.sim import solvers as solvers_module
+    from benchmarks.study_body_frame import time_frame_parts
 
     K.AFTER_CONTACT_SWEEPS = after_contact_sweeps
-    spent: dict[str, float] = collections.defaultdict(float)
-
-    def timed(cls, name: str) -> None:
-        method = getattr(cls, name)
-
-        def wrapper(*args, **kwargs):
-            t = time.perf_counter()
-            out = method(*args, **kwargs)
-            spent[name] += time.perf_counter() - t
-            return out
-
-        setattr(cls, name, wrapper)
-
-    for name in ("_set_body", "_record", "_advance"):
-        timed(simulate_module._Simulation, name)
-    timed(solvers_module.XPBDSolver, "advance_frame")
     scene = build_scene("tube_cylinder", fabric, "5k", frames=LONG_FRAMES)
     rows = []
     for setting in FRAME_SETTINGS:
         sub, it = (int(k) for k in setting.split("x"))
         _timed(scene, sub, it)
-        spent.clear()
+        spent = {"solver": 0.0, "search": 0.0, "collider": 0.0, "qa": 0.0, "loop": 0.0}
         simulate_module.make_solver = make_solver
-        run = run_ours(scene, "xpbd", sub, it)
+        with time_frame_parts(spent):
+            run = run_ours(scene, "xpbd", sub, it)
         rate = run.seconds_per_simulated_second
         ms = {k: 1000 * v / LONG_FRAMES for k, v in spent.items()}
-        rows.append({"setting": setting, "s_per_sim_s": rate, "solver": ms["advance_frame"],
+        rows.append({"setting": setting, "s_per_sim_s": rate, "solver": ms["solver"],
                      "strain_p999": float(run.qa["strain_p999"].max()),
-                     "collider": ms["_set_body"], "record": ms["_record"],
-                     "rest": ms["_advance"] - ms["advance_frame"] - ms["_set_body"]})
+                     "collider": ms["collider"], "record": ms["qa"],
+                     "rest": ms["loop"] - ms["solver"] - ms["collider"]})
     return rows
 
 
