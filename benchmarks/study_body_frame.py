@@ -211,7 +211,7 @@ def main() -> None:
     # The per-effect kernels' split: each launch timed on its own, slower than the fused
     # frame (read the shares).
     print("\n| scene | setting | per-effect frame ms | springs and bending | strain limit | "
-          "body search | body contact | other effects and the frame loop |")
+          "body search | body contact | other effects, the frame loop and the set-up |")
     print("|---" * 8 + "|")
     for row in split:
         e = row["effects_ms"]
