@@ -74,7 +74,8 @@ def time_frame_parts(spent: dict[str, float]) -> Iterator[None]:
     """Within the block, time the fused frame's parts into `spent` (s): the solver's frame
     (the substeps), the full search, the collider's frame (the body's poses and grid) and the
     QA and outputs, as study_coarse_correction's frame_parts does for the tube, and the frame
-    loop's advances (`loop`, which holds all but the QA)."""
+    loop's advances (`loop`, which holds all but the QA). Each part starts at zero."""
+    spent.update(dict.fromkeys(("solver", "search", "collider", "qa", "loop"), 0.0))
     from datagen.sim import simulate as simulate_module
     from datagen.sim import solvers
 
@@ -121,7 +122,7 @@ def measure_setting(scene, sub: int, it: int, per_effect: bool) -> dict:
     from datagen.study.run import PEER_EFFECTS, run_ours
 
     run_ours(scene, "xpbd", sub, it)  # compiles this setting's kernels
-    parts = {"solver": 0.0, "search": 0.0, "collider": 0.0, "qa": 0.0, "loop": 0.0}
+    parts: dict[str, float] = {}
     with time_frame_parts(parts):
         run = run_ours(scene, "xpbd", sub, it)
     frames = len(run.positions) - 1

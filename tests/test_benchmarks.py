@@ -322,7 +322,6 @@ def test_the_coarse_study_solves_a_chain_exactly_and_lifts_the_hanging_load():
     assert abs(sag["chains"]) < 0.1 * sag["cold"], sag  # 3.4 mm cold, 0.02 mm with chains
 
 
-
 def test_the_body_frame_study_splits_what_it_times_and_leaves_the_simulator_as_it_was():
     """benchmarks/study_body_frame.py times a frame's parts by wrapping the simulator's
     methods: the body collision's search and contact add up to the body collision the
