@@ -143,6 +143,41 @@ def test_report_only_names_the_parts_not_measured_yet_or_measured_earlier(tmp_pa
         run_study(tmp_path, blender=False, measure=False, log=lambda _: None)
 
 
+def test_a_part_timed_with_our_set_up_is_reported_marked_and_measured_again_when_asked(
+        tmp_path, monkeypatch):
+    """Parts saved before the set-up was timed apart (no "timing" in their signature) timed
+    ours with its set-up and Blender without its own: they are reported, named on the page,
+    until `--part` (or a full run) measures them again."""
+    import json
+
+    from datagen.study import sweep
+
+    part, path, row = _one_finished_part(tmp_path)
+    del part["signature"]["timing"]
+    path.write_text(json.dumps(part))
+    doc = tmp_path / "page.md"
+    summary = sweep.main_cli(str(tmp_path), quick=False, blender=False, doc=str(doc),
+                             command="test", measure=False)
+    assert summary["timed_with_setup_parts"] == [part["key"]]
+    assert summary["earlier_simulator_parts"] == []  # the same simulator: only the timing
+    assert f"**Ours timed with its set-up: {part['key']}.**" in doc.read_text()
+    measured = []
+
+    def run_part(scene_name, resolution, fabric, plan, have_blender, log):
+        measured.append(f"{scene_name}/{fabric}")
+        return {**part, "signature": sweep._plan_signature(plan, scene_name)}
+
+    monkeypatch.setattr(sweep, "run_part", run_part)
+    summary, rows = sweep.run_study(tmp_path, blender=False, only={part["key"]},
+                                    log=lambda _: None)
+    assert measured == [part["key"]] and summary["timed_with_setup_parts"] == []
+    assert json.loads(path.read_text())["signature"]["timing"] == sweep.TIMING
+    # measured again, the part is reused as it is
+    summary, rows = sweep.run_study(tmp_path, blender=False, only={part["key"]},
+                                    log=lambda _: None)
+    assert measured == [part["key"]] and rows == [row]
+
+
 def test_a_part_whose_scene_the_simulator_still_runs_the_same_is_carried_over(
         tmp_path, monkeypatch):
     """A part measured by other simulator sources stands for today's simulator when its
@@ -438,7 +473,8 @@ def test_a_rejected_warm_up_does_not_stand_for_the_measured_run(monkeypatch):
         if len(calls) == 1:
             raise RejectedSequence("simulate", "unstable at frame 1 (the warm-up)")
         n = track.n_frames
-        return SimResult(["sheet"], {"sheet": np.zeros((n, 4, 3), np.float32)}, {}, {})
+        return SimResult(["sheet"], {"sheet": np.zeros((n, 4, 3), np.float32)}, {},
+                         {"frames_time_s": 2.0, "setup_time_s": 0.5})
 
     monkeypatch.setattr(study_run, "simulate", fake_simulate)
     monkeypatch.setattr(study_run, "_WARM", set())
@@ -448,6 +484,7 @@ def test_a_rejected_warm_up_does_not_stand_for_the_measured_run(monkeypatch):
     run = study_run.run_ours(scene, "explicit", 200, 1)
     assert calls == [(3, 200), (11, 200)]
     assert run.positions.shape == (11, 4, 3) and run.simulated == pytest.approx(10 / 30)
+    assert (run.wall, run.setup) == (2.0, 0.5)  # the frames timed, the set-up apart
 
 
 def test_equal_error_speed_pairs_each_blender_run_with_our_cheapest_as_close():

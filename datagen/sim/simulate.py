@@ -354,6 +354,9 @@ class _Simulation:
         """`parts`: the scenes of a batch (datagen.sim.batch), each measured and guarded on its
         own: its garments g0:g1 and its collider's vertices b0:b1; None: the garments are one
         scene."""
+        # The set-up (model, collider, pins, solver) is timed apart from the frames: a peer's
+        # timed frames leave out its own set-up (docs/simulator.md, "Where a body frame goes").
+        self._t_created = time.perf_counter()
         self.garments = garments
         self.body = body
         self.options = options
@@ -521,9 +524,9 @@ class _Simulation:
                 f"{released:.3g} J of released elastic energy can give")
 
     def run(self) -> SimResult:
-        t_start = time.perf_counter()
         self.solvers = {self.substeps: self._solver(self.substeps)}
         self.solver = self.solvers[self.substeps]
+        t_frames = time.perf_counter()
         body = self.body
         n_body = body.n_frames if body is not None else self.options.frames + 1
         lead_in = body.lead_in_frames if body is not None else 0
@@ -546,8 +549,9 @@ class _Simulation:
             step += 1
             if f0 + 1 >= lead_in:
                 self._record(f0 + 1, outputs, qa_rows)
-        wall = time.perf_counter() - t_start
-        return self._result(outputs, qa_rows, wall, settle)
+        t_end = time.perf_counter()
+        return self._result(outputs, qa_rows, t_frames - self._t_created, t_end - t_frames,
+                            settle)
 
     def _advance(self, f0: int, f1: int, step: int, lead_in: int, refine: bool = True) -> None:
         """One frame, redone from its start with twice the substeps when a stability guard
@@ -648,7 +652,7 @@ class _Simulation:
         strain = self._strain(x)
         qa_rows.append([_qa(self.model, p, v, sd, strain) for p in self.parts])
 
-    def _result(self, outputs, qa_rows, wall, settle) -> SimResult:
+    def _result(self, outputs, qa_rows, setup: float, frames: float, settle) -> SimResult:
         costs: dict[str, float] = {}
         launches: dict[str, int] = {}
         for s in self.solvers.values():
@@ -673,13 +677,18 @@ class _Simulation:
             "effects": self.effects.enabled(),
             "effect_costs_s": _effect_costs(costs),
             "kernel_launches": launches,
-            "wall_time_s": wall,
+            # The whole run, and its two parts: the set-up before the first frame (model,
+            # collider, pins, solver) and the frames (settling, lead-in and sequence).
+            "wall_time_s": setup + frames,
+            "setup_time_s": setup,
+            "frames_time_s": frames,
             "retries": self.retries,
             "strain_refinements": self.strain_refinements,
             "settle_frames": settle,
             "frames": n_frames,
             "vertices": self.model.n_vertices,
-            "simulated_seconds_per_wall_second": (len(self.frame_substeps) / self.fps) / wall,
+            "simulated_seconds_per_wall_second": (len(self.frame_substeps) / self.fps)
+            / (setup + frames),
             "frame_substeps_max": max(self.frame_substeps, default=self.substeps),
             # Elements the model floored (a user's template with degenerate triangles).
             "degenerate_elements": {k: v for k, v in self.model.degenerate.items() if v},

@@ -95,6 +95,8 @@ def run_blender(scene: StudyScene, quality: int, timeout: float = 3600.0,
             raise RuntimeError(f"Blender failed: {r.stderr[-500:]}")
         d = np.load(dst)
         positions = d["positions"].astype(np.float64)
-        wall = float(d["frame_seconds"][1:].sum())  # frame 1 is the start state
+        # Frame 1 is the start state: setting it builds Blender's cloth, its set-up.
+        setup = float(d["frame_seconds"][0])
+        wall = float(d["frame_seconds"][1:].sum())
     frames = len(positions) - 1
-    return Run(f"blender q{quality}", positions, wall, frames / scene.track.fps, {})
+    return Run(f"blender q{quality}", positions, wall, frames / scene.track.fps, {}, setup)
