@@ -82,7 +82,7 @@ def test_a_stopped_study_keeps_its_finished_parts(tmp_path):
     summary, rows = run_study(tmp_path, quick=True, blender=False, log=logged.append)
     assert rows == [row]  # nothing was run again (a real run takes minutes)
     assert summary["minutes"] == 3.0 and summary["predictable_frames"] == {part["key"]: 10}
-    assert any("reusing" in line for line in logged)
+    assert any("reused" in line for line in logged)
     assert (tmp_path / "accuracy.csv").read_text().count("\n") == 2
     assert not reusable(part, {**signature, "reference_levels": 7}, have_blender=False)
     # a change to the simulator's sources makes the part stale

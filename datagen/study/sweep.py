@@ -348,6 +348,28 @@ def measured_earlier(part: dict, signature: dict) -> bool:
     return saved != signature and _same_but(saved, signature, EARLIER_KEYS)
 
 
+def saved_part_verdict(part: dict, signature: dict, have_blender: bool, wanted: bool,
+                       fingerprint: Callable[[], str]) -> tuple[str, str] | None:
+    """How a run takes a part saved under `parts/`, and why: "reused" (measured under this
+    plan), "carried" (measured by other simulator sources that behave the same on its scene),
+    "reported" (measured earlier, kept to be reported and marked, only when it is not to be
+    measured), or None (measured again, or listed as missing). A part timed the earlier way
+    (ours with its set-up: no TIMING) is taken only when it is not to be measured: its errors
+    stand, its times do not compare with Blender's."""
+    as_timed = _as_timed(signature, part)
+    if as_timed != signature and wanted:
+        return None
+    if reusable(part, as_timed, have_blender):
+        return "reused", f"reused ({part['minutes']:.0f} min)"
+    if same_behaviour(part, as_timed, have_blender, fingerprint):
+        return "carried", (f"reused: measured with simulator sources "
+                           f"{part['signature']['simulator']}, which behave as today's on it")
+    if not wanted and measured_earlier(part, signature):
+        return "reported", ("measured with an earlier simulator, Blender reference or timing; "
+                            "reported as such")
+    return None
+
+
 def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_blender: bool,
              log) -> dict:
     """One scene and fabric: its reference ladder, its predictable horizon, our sweep and
@@ -470,40 +492,24 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
             if path.exists():
                 part = json.loads(path.read_text())
                 signature = _plan_signature(plan, scene_name)
-                # A part timed the earlier way is reused only to be reported (marked) and is
-                # measured again when wanted; its errors stand, its times include our set-up.
-                as_timed = _as_timed(signature, part)
-                old_timing = as_timed != signature
-                if old_timing and wanted:
-                    log(f"{key}: {path} timed ours with its set-up: measuring it again")
-                else:
-                    if reusable(part, as_timed, have_blender):
-                        log(f"{key}: reusing {path} ({part['minutes']:.0f} min)")
-                        parts.append(part)
-                        timed_with_setup += [key] if old_timing else []
-                        continue
-                    if same_behaviour(part, as_timed, have_blender, partial(
-                            part_fingerprint, scene_name, resolution, fabric, plan)):
-                        log(f"{key}: reusing {path}: measured with simulator sources "
-                            f"{part['signature']['simulator']}, which behave as today's on it")
-                        parts.append(part)
+                verdict = saved_part_verdict(part, signature, have_blender, wanted, partial(
+                    part_fingerprint, scene_name, resolution, fabric, plan))
+                if verdict is not None:
+                    kind, why = verdict
+                    log(f"{key}: {path}: {why}")
+                    parts.append(part)
+                    if _as_timed(signature, part) != signature:
+                        timed_with_setup.append(key)
+                    if kind == "carried":
                         carried.append(key)
-                        timed_with_setup += [key] if old_timing else []
-                        continue
-                    if not wanted and measured_earlier(part, signature):
-                        # Reported, and marked: its figures stand for the simulator it measured
-                        # and for Blender's converged run that it measured against.
-                        log(f"{key}: {path} was measured with an earlier simulator or Blender "
-                            "reference; reported as such")
-                        parts.append(part)
-                        timed_with_setup += [key] if old_timing else []
+                    if kind == "reported":
                         if part["signature"]["simulator"] != signature["simulator"]:
                             earlier.append(key)
                         quality = part["signature"].get("blender_converged")
                         if quality != signature["blender_converged"]:
                             earlier_blender[key] = quality
-                        continue
-                    log(f"{key}: {path} was measured under another plan or simulator")
+                    continue
+                log(f"{key}: {path} was measured under another plan, simulator or timing")
             if not wanted:
                 missing.append(key)
                 continue
