@@ -38,8 +38,8 @@ CONVERGED_MM = 0.5
 TWIN_METRES = 1e-6  # the twin reference starts this far from the reference
 CHAOS_MM = 1.0  # the twin has left the reference (the scene is no longer predictable)
 # How a part's runs are timed (its signature names it). Until 2026-11-28 ours was timed from the
-# call to simulate, its set-up included, and Blender from its second frame: those parts' ratios
-# are 4-8 % low against ours, and are reported so until measured again.
+# call to simulate, its set-up included, and Blender from its second frame: those parts' speed
+# ratios to Blender are 4-8 % too low, and the page says so until they are measured again.
 TIMING = "frames; the set-up before the first frame apart, ours and Blender's"
 
 
