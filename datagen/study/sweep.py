@@ -297,6 +297,11 @@ def _as_timed(signature: dict, part: dict) -> dict:
     return out if timing is None else {**out, "timing": timing}
 
 
+def timed_earlier(part: dict, signature: dict) -> bool:
+    """A saved part timed otherwise than this plan times (ours with its set-up)."""
+    return _as_timed(signature, part) != signature
+
+
 def _rejected_row(scene: str, fabric: str, resolution: str, solver: str, sub: int, it: int,
                   vertices: int, exc, log) -> Row:
     log(f"  {solver} {resolution} {sub}x{it}: rejected ({exc.reason})")
@@ -356,9 +361,9 @@ def saved_part_verdict(part: dict, signature: dict, have_blender: bool, wanted: 
     measured), or None (measured again, or listed as missing). A part timed the earlier way
     (ours with its set-up: no TIMING) is taken only when it is not to be measured: its errors
     stand, its times do not compare with Blender's."""
-    as_timed = _as_timed(signature, part)
-    if as_timed != signature and wanted:
+    if timed_earlier(part, signature) and wanted:
         return None
+    as_timed = _as_timed(signature, part)
     if reusable(part, as_timed, have_blender):
         return "reused", f"reused ({part['minutes']:.0f} min)"
     if same_behaviour(part, as_timed, have_blender, fingerprint):
@@ -498,7 +503,7 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
                     kind, why = verdict
                     log(f"{key}: {path}: {why}")
                     parts.append(part)
-                    if _as_timed(signature, part) != signature:
+                    if timed_earlier(part, signature):
                         timed_with_setup.append(key)
                     if kind == "carried":
                         carried.append(key)
