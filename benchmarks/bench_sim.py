@@ -36,6 +36,7 @@ from datagen.errors import RejectedSequence
 from datagen.sim.simulate import QUALITY_PRESETS
 from datagen.study import blender as peer
 from datagen.study.cache import source_digest
+from datagen.study.machine import this_machine
 from datagen.study.metrics import rms_distance
 from datagen.study.run import PEER_EFFECTS, run_ours
 from datagen.study.scenes import build_scene
@@ -455,7 +456,7 @@ def main(argv: list[str] | None = None) -> None:
         PEER_JSON.write_text(json.dumps({
             "date": time.strftime("%Y-%m-%d"), "command": COMMAND,
             "blender": peer.blender_version(), "source": source_digest(),
-            "rows": rows, "machine": machine,
+            "cpu": this_machine(), "rows": rows, "machine": machine,
         }, indent=1, default=float) + "\n")
 
 

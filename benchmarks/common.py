@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import platform
 import re
 import statistics
@@ -33,7 +32,10 @@ def timed(fn: Callable, repeat: int = 3) -> tuple[float, object]:
 
 
 def machine() -> str:
-    return f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    """The machine a section names: its processor (datagen.study.machine) and Python."""
+    from datagen.study.machine import this_machine
+
+    return f"{this_machine()}, Python {platform.python_version()}"
 
 
 def write_section(name: str, title: str, body: str, command: str) -> None:

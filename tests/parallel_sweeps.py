@@ -4,8 +4,8 @@ one (a GPU's form of the solver, run on this CPU's threads).
 
 Usage: python tests/parallel_sweeps.py MODE OUT.npz, MODE one of
   serial    the CPU default (one thread, Gauss-Seidel sweeps in one launch per frame)
-  coloured  the parallel backend's kernels on one thread: serial() overridden in every module
-            that reads it (solvers, simulate and collider today), so that the two runs launch
+  coloured  the parallel backend's kernels on one thread: backend.serial() overridden (every
+            module reads it through the backend module), so that the two runs launch
             the same kernels (the collider's serial forms, its one-launch grid and serialized
             passes, may round differently on some CPUs: the coarse tube 0.2 mm apart at frame
             12 on one AMD EPYC)
@@ -27,13 +27,8 @@ def main(mode: str, out: str) -> None:
     from datagen.sim import simulate as simulate_module  # imports every module that reads it
 
     if mode == "coloured":  # every kernel, sweeps and presets a parallel backend gets
-        # Each module imports serial() by name: rebind it wherever it is, not in a list of
-        # modules that a new reader would silently escape.
-        original = backend.serial
-        for module in list(sys.modules.values()):
-            if getattr(module, "serial", None) is original:
-                module.serial = lambda: False
-        assert not simulate_module.serial()
+        backend.serial = lambda: False
+        assert not simulate_module.backend.serial()
     from datagen.sim.scenes import grid_sheet
     from datagen.sim.scenes import tube as tube_garment
     from datagen.sim.simulate import SimOptions, simulate
@@ -72,7 +67,7 @@ def main(mode: str, out: str) -> None:
         layers=np.concatenate([layered.vertices["inner"], layered.vertices["outer"]], axis=1),
         layers_faces=inner.faces,
         layers_effects=layered.report["effects"],
-        serial=solvers.serial(),
+        serial=solvers.backend.serial(),
         steps=[swing.report["substeps"], swing.report["iterations"]],
         sheet=swing.vertices[sheet.name],
         sheet_strain=swing.qa["strain_p999"],

@@ -1439,10 +1439,10 @@ def test_self_collision_separates_the_layers_of_a_folded_sheet(monkeypatch, para
     from scipy.spatial import cKDTree
     from scipy.spatial.transform import Rotation
 
-    from datagen.sim import solvers
+    from datagen.sim import backend
 
     if parallel:
-        monkeypatch.setattr(solvers, "serial", lambda: False)
+        monkeypatch.setattr(backend, "serial", lambda: False)
     sheet = grid_sheet(40, 0.4, 0.0)
     model = build_cloth_model([(sheet, FABRICS["cotton"])])
     solver = make_solver("xpbd", model, Effects(body_collision=False, friction=False,
@@ -1474,9 +1474,9 @@ def test_self_collision_separates_the_layers_of_a_folded_sheet(monkeypatch, para
 
 def _coloured_solver(monkeypatch, model, effects):
     """An xpbd solver built as on a parallel backend (coloured sweeps), in this process."""
-    from datagen.sim import solvers
+    from datagen.sim import backend
 
-    monkeypatch.setattr(solvers, "serial", lambda: False)
+    monkeypatch.setattr(backend, "serial", lambda: False)
     return make_solver("xpbd", model, effects, SolverSettings(substeps=20, iterations=4))
 
 

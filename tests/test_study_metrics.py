@@ -630,3 +630,22 @@ def test_the_page_gives_each_parts_blender_halving_or_says_it_was_not_measured(t
         line = next(ln for ln in doc.read_text().splitlines()
                     if ln.startswith(f"- {part['key']}: Blender converged vs ours"))
         assert "28.9 mm RMS" in line and line.endswith(expected)
+
+
+def test_the_machine_label_names_the_first_cpu_and_digests_its_flags_in_any_order():
+    """A study part and a benchmark page name the CPU that measured them: the first processor
+    of /proc/cpuinfo, its family, model and stepping, and a digest of its feature flags (what
+    Taichi's LLVM compiles for), the same whatever order the kernel lists them in."""
+    from datagen.study.machine import cpu_label
+
+    def cpuinfo(flags: str, model: str = "2") -> str:
+        block = (f"processor\t: {{}}\nvendor_id\t: AuthenticAMD\ncpu family\t: 26\n"
+                 f"model\t\t: {model}\nmodel name\t: AMD EPYC\nstepping\t: 1\nflags\t\t: {flags}\n")
+        return block.format(0) + "\n" + block.format(1).replace("model name\t: AMD EPYC",
+                                                               "model name\t: other")
+
+    label = cpu_label(cpuinfo("fpu avx2 avx512f"))
+    assert label.startswith("AMD EPYC (family 26, model 2, stepping 1, flags ")
+    assert label == cpu_label(cpuinfo("avx512f fpu avx2"))
+    assert label != cpu_label(cpuinfo("fpu avx2"))  # no AVX-512: other code, maybe other rounding
+    assert label != cpu_label(cpuinfo("fpu avx2 avx512f", model="1"))

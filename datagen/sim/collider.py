@@ -10,9 +10,10 @@ import itertools
 import numpy as np
 import taichi as ti
 
+from datagen.sim import backend
 from datagen.sim import kernels as K
 from datagen.sim import parallel_kernels as PK
-from datagen.sim.backend import init_taichi, serial
+from datagen.sim.backend import init_taichi
 from datagen.sim.precision import NP_REAL, REAL, VEC3
 
 
@@ -70,7 +71,7 @@ class BodyCollider:
         self.box = np.zeros((2, 3), NP_REAL)
         # Parallel backends gather each vertex's face normals (datagen.sim.parallel_kernels).
         self.vertex_faces = None
-        if normals and not serial():
+        if normals and not backend.serial():
             from datagen.sim.solvers import _vertex_lists_nd
 
             self.vertex_faces = _vertex_lists_nd(self.faces_np.ravel(), n_vertices)
@@ -119,7 +120,7 @@ class BodyCollider:
             self.b0, self.b1 = self.b1, self.b0
             self.n0, self.n1 = self.n1, self.n0
         else:
-            K.copy_in(v0, self.b0, serial())
+            K.copy_in(v0, self.b0, backend.serial())
             self._normals(self.b0, self.n0)
         self.v0_np, self.v1_np = v0, v1
         # numpy reduces along the first axis of an (N, 3) array ten times slower than along a
@@ -135,10 +136,10 @@ class BodyCollider:
         self.relative_travel = np.sqrt(np.einsum("ci,ci->i", relative, relative)).astype(NP_REAL)
         self._at_rest = bool(np.array_equal(v0, v1))
         if self._at_rest:
-            K.copy_in(self.b0, self.b1, serial())
-            K.copy_in(self.n0, self.n1, serial())
+            K.copy_in(self.b0, self.b1, backend.serial())
+            K.copy_in(self.n0, self.n1, backend.serial())
         else:
-            K.copy_in(v1, self.b1, serial())
+            K.copy_in(v1, self.b1, backend.serial())
             self._normals(self.b1, self.n1)
         self._build_grid()
 
@@ -153,7 +154,7 @@ class BodyCollider:
 
     def _build_grid(self) -> None:
         self.grid_tag = next(_GRID_TAGS)
-        K.collider_bounds(self.b0, self.b1, self.used, self.box, serial())
+        K.collider_bounds(self.b0, self.b1, self.used, self.box, backend.serial())
         lo, hi = self.box[0] - self.cell, self.box[1] + self.cell
         dims = np.maximum(np.ceil((hi - lo) / self.cell).astype(np.int64), 1)
         n_cells = int(np.prod(dims))
@@ -165,7 +166,7 @@ class BodyCollider:
             self._n_cells_alloc = int((n_cells + 1) * 1.5)
             self.counts = ti.ndarray(ti.i32, self._n_cells_alloc)
             self.starts = ti.ndarray(ti.i32, self._n_cells_alloc + 1)
-            if not serial():  # the parallel prefix's block sums (K.grid_prefix)
+            if not backend.serial():  # the parallel prefix's block sums (K.grid_prefix)
                 self.block_starts = ti.ndarray(ti.i32,
                                                self._n_cells_alloc // K.PREFIX_BLOCK + 2)
             self.counts.fill(0)
@@ -174,7 +175,7 @@ class BodyCollider:
         self.inv_cell = float(1.0 / self.cell)
         self.dims = ti.math.ivec3(*dims.astype(np.int32))
         self.dims_np = dims.astype(np.int32)
-        if serial():
+        if backend.serial():
             self._build_grid_serial(n_cells)
             return
         K.grid_count(
@@ -188,7 +189,7 @@ class BodyCollider:
             self.counts,
             self.relative_travel,
             self.tbox,
-            serial(),
+            backend.serial(),
         )
         K.grid_prefix(self.counts, self.starts, n_cells, self.block_starts)
         total = int(self.starts[n_cells])
@@ -204,7 +205,7 @@ class BodyCollider:
             self.counts,
             self.starts,
             self.items,
-            serial(),
+            backend.serial(),
         )
         K.grid_sort(self.starts, self.items, n_cells)
         # grid_fill used counts as cursors; they must be zero for the next frame's counting.
@@ -232,7 +233,7 @@ class BodyCollider:
             self._sdt_n = n
             self._sdt_out = np.zeros(n, NP_REAL)
         K.signed_distance_to_tracked(x, tri, self.faces, self.b1, self.n1, float(self.cell),
-                                     self._sdt_out, serial())
+                                     self._sdt_out, backend.serial())
         return self._sdt_out.astype(np.float64)
 
     def signed_distance(self, x: np.ndarray) -> np.ndarray:
@@ -249,7 +250,7 @@ class BodyCollider:
         self._sd_x.from_numpy(np.asarray(x, dtype=NP_REAL))
         self.nearest(self._sd_x, self._sd_w, self._sd_tri, 1.0)  # every vertex: a full search
         K.signed_distance_to_tracked(self._sd_x, self._sd_tri, self.faces, self.b1, self.n1,
-                                     float(self.cell), self._sd_out, serial())
+                                     float(self.cell), self._sd_out, backend.serial())
         return self._sd_out.to_numpy().astype(np.float64)
 
     def nearest(self, x, w, tri, s: float, which: int = K.SEARCH_ALL, guard=None,

@@ -1222,6 +1222,19 @@ def count_triangle(
                 ti.atomic_add(counts[grid_cell(ti.math.ivec3(cx, cy, cz), dims)], 1)
 
 
+@ti.func
+def count_triangles(
+    b0: V3, b1: V3, faces: I3, mask: I1, origin: vec3, inv_cell: REAL, dims: ti.math.ivec3,
+    counts: I1, travel: F1, tbox: V8, serialize: ti.template(),
+):
+    """count_triangle for every triangle the mask keeps: grid_count's loop, and the first of
+    grid_build_serial's."""
+    ti.loop_config(serialize=serialize)
+    for t in range(faces.shape[0]):
+        if mask[t] != 0:
+            count_triangle(t, b0, b1, faces, origin, inv_cell, dims, counts, travel, tbox)
+
+
 @ti.kernel
 def grid_count(
     b0: V3,
@@ -1240,10 +1253,7 @@ def grid_count(
     and fastest corner's `travel` in `tbox` (lo xyz, hi xyz, travel, 0) for nearest_one.
     `serialize` on a serial backend: the counts' atomic adds become plain ones (a walking
     body's grid counted in 0.6 ms instead of 1.1)."""
-    ti.loop_config(serialize=serialize)
-    for t in range(faces.shape[0]):
-        if mask[t] != 0:
-            count_triangle(t, b0, b1, faces, origin, inv_cell, dims, counts, travel, tbox)
+    count_triangles(b0, b1, faces, mask, origin, inv_cell, dims, counts, travel, tbox, serialize)
 
 
 # Cells per block of the grid's prefix sum: blocks are summed in parallel, their sums prefixed
@@ -1363,10 +1373,7 @@ def grid_build_serial(
     order as the serial grid_fill does. Returns the number of entries; where `items` is too
     short for them nothing is filed (the caller grows it and calls again). `counts` end at zero
     either way."""
-    ti.loop_config(serialize=True)
-    for t in range(faces.shape[0]):
-        if mask[t] != 0:
-            count_triangle(t, b0, b1, faces, origin, inv_cell, dims, counts, travel, tbox)
+    count_triangles(b0, b1, faces, mask, origin, inv_cell, dims, counts, travel, tbox, True)
     run = 0
     ti.loop_config(serialize=True)
     for c in range(n_cells):

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from datagen.errors import InputError, RejectedSequence
-from datagen.sim.backend import serial
+from datagen.sim import backend
 from datagen.sim.collider import BodyCollider
 from datagen.sim.effects import Effects, SceneContent, resolve_effects
 from datagen.sim.fabrics import Fabric, get_fabric
@@ -109,7 +109,7 @@ class SimOptions:
             raise InputError(None, "solver", f"one of {', '.join(QUALITY_PRESETS)}", self.solver)
         if self.quality not in presets:
             raise InputError(None, "quality", f"one of {', '.join(presets)}", self.quality)
-        if self.solver in PARALLEL_QUALITY_PRESETS and not serial():
+        if self.solver in PARALLEL_QUALITY_PRESETS and not backend.serial():
             presets = PARALLEL_QUALITY_PRESETS[self.solver]
         sub, it = presets[self.quality]
         return self.substeps or sub, self.iterations or it
@@ -355,7 +355,7 @@ class _Simulation:
         own: its garments g0:g1 and its collider's vertices b0:b1; None: the garments are one
         scene."""
         # The set-up (model, collider, pins, solver) is timed apart from the frames: a peer's
-        # timed frames leave out its own set-up (docs/simulator.md, "Where a body frame goes").
+        # timed frames leave out its own set-up (docs/simulator.md, "Timing against a peer").
         self._t_created = time.perf_counter()
         self.garments = garments
         self.body = body

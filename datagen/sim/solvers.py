@@ -22,9 +22,10 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
+from datagen.sim import backend
 from datagen.sim import kernels as K
 from datagen.sim import parallel_kernels as PK
-from datagen.sim.backend import init_taichi, serial
+from datagen.sim.backend import init_taichi
 from datagen.sim.effects import Effects
 from datagen.sim.model import NO_LIMIT, SEAM, SHEAR, STRUCTURAL, ClothModel
 from datagen.sim.precision import NP_REAL, REAL, VEC3, VEC4
@@ -185,7 +186,7 @@ class ClothSolver:
         init_taichi()
         # A GPU or several CPU threads: kernels whose serial form is one task or sums in thread
         # order have parallel forms there (parallel_kernels.py).
-        self.parallel = not serial()
+        self.parallel = not backend.serial()
         self.model = model
         self.effects = effects
         self.settings = settings
@@ -434,7 +435,7 @@ class ClothSolver:
     def get_state(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions and velocities (float64 copies)."""
         out = np.empty((2, self.n, 3))
-        K.read_state(self.x, self.v, out, serial())
+        K.read_state(self.x, self.v, out, backend.serial())
         return out[0], out[1]
 
     def set_state(self, x: np.ndarray, v: np.ndarray) -> None:
@@ -453,20 +454,20 @@ class ClothSolver:
                 kinds.update(layer_tri=ti.i32, layer_guard=K.GUARD)
             self._tracking = {name: ti.ndarray(kind, self.n) for name, kind in kinds.items()}
         t = self._tracking
-        K.copy_tracking(self.tri, self.guard, t["tri"], t["guard"], serial())
+        K.copy_tracking(self.tri, self.guard, t["tri"], t["guard"], backend.serial())
         t["odo"] = self.odo
         if self.use_layers:
             K.copy_tracking(self.layer_tri, self.layer_guard, t["layer_tri"], t["layer_guard"],
-                            serial())
+                            backend.serial())
             t["layer_odo"] = self.layer_odo
         return t
 
     def set_tracking(self, tracking: dict) -> None:
-        K.copy_tracking(tracking["tri"], tracking["guard"], self.tri, self.guard, serial())
+        K.copy_tracking(tracking["tri"], tracking["guard"], self.tri, self.guard, backend.serial())
         self.odo = tracking["odo"]
         if self.use_layers:
             K.copy_tracking(tracking["layer_tri"], tracking["layer_guard"], self.layer_tri,
-                            self.layer_guard, serial())
+                            self.layer_guard, backend.serial())
             self.layer_odo = tracking["layer_odo"]
 
     def set_pin_targets(self, t0: np.ndarray, t1: np.ndarray) -> None:
