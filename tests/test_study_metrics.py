@@ -143,6 +143,45 @@ def test_report_only_names_the_parts_not_measured_yet_or_measured_earlier(tmp_pa
         run_study(tmp_path, blender=False, measure=False, log=lambda _: None)
 
 
+def test_a_part_measured_on_another_machine_is_named_with_it_on_the_page(tmp_path, monkeypatch):
+    """A part records the machine that measured it (study.machine). Reported on another, the
+    page names that machine beside the part (its times and rounding are that machine's), and
+    why a simulator change may only be a change of CPU; a part saved before parts recorded it
+    is listed as not recorded; one measured here is not named."""
+    import json
+
+    from datagen.study import machine, sweep
+
+    monkeypatch.setattr(machine, "this_machine", lambda: "x86_64, CPU HERE, 2 cores")
+    part, path, row = _one_finished_part(tmp_path)
+    doc = tmp_path / "page.md"
+
+    def page(**saved) -> tuple[dict, str]:
+        path.write_text(json.dumps({**part, **saved}))
+        summary = sweep.main_cli(str(tmp_path), quick=False, blender=False, doc=str(doc),
+                                 command="test", measure=False)
+        return summary, doc.read_text()
+
+    summary, text = page()
+    assert summary["other_machine_parts"] == {part["key"]: "not recorded"}
+    assert f"**Machine not recorded: {part['key']}**" in text
+    assert "per simulated second on this machine (x86_64, CPU HERE, 2 cores)" in text
+    summary, text = page(machine="x86_64, CPU HERE, 2 cores")
+    assert summary["other_machine_parts"] == {} and "another machine" not in text
+    assert "not recorded" not in text
+    summary, text = page(machine="x86_64, CPU THERE, 2 cores")
+    assert summary["other_machine_parts"] == {part["key"]: "x86_64, CPU THERE, 2 cores"}
+    assert (f"**Measured on another machine: {part['key']} (x86_64, CPU THERE, 2 cores).**"
+            in text)
+    # Reported under an earlier simulator, the log says the machine too
+    logged = []
+    part["signature"]["simulator"] = "0" * 16
+    path.write_text(json.dumps({**part, "machine": "x86_64, CPU THERE, 2 cores"}))
+    summary, _ = sweep.run_study(tmp_path, blender=False, measure=False, log=logged.append)
+    assert summary["earlier_simulator_parts"] == [part["key"]]
+    assert any("on another machine (x86_64, CPU THERE, 2 cores)" in line for line in logged)
+
+
 def test_a_part_timed_with_our_set_up_is_reported_marked_and_measured_again_when_asked(
         tmp_path, monkeypatch):
     """Parts saved before the set-up was timed apart (no "timing" in their signature) timed

@@ -12,7 +12,8 @@ whose fingerprint equals today's is carried over as measured by today's simulato
 It is evidence, not proof: a change that leaves these few frames bit-identical but changes
 later frames, or only other settings, would slip through, so the page names the parts carried
 over by fingerprint. The digest depends on this machine's floating point (another CPU may
-differ), which only ever reads as a change.
+differ), which only ever reads as a change; parts record the machine that measured them
+(`study.machine`) and the page names those measured elsewhere, so such a change can be read.
 """
 
 from __future__ import annotations

@@ -17,7 +17,14 @@ import numpy as np
 
 from datagen.study.run import PEER_EFFECTS
 from datagen.study.scenes import START_SUBSTEPS
-from datagen.study.sweep import CHAOS_MM, CONVERGED_MM, TWIN_METRES, Row, pareto
+from datagen.study.sweep import (
+    CHAOS_MM,
+    CONVERGED_MM,
+    NOT_RECORDED,
+    TWIN_METRES,
+    Row,
+    pareto,
+)
 
 STATE_NOTE = "state.md"
 HISTORY_NOTE = "history.md"
@@ -224,6 +231,26 @@ def reading(rows: list[Row], presets: dict[str, tuple[int, int]]) -> list[str]:
     return lines
 
 
+def _machine_lines(elsewhere: dict[str, str]) -> list[str]:
+    """The page's note on parts measured on other machines, or on machines not recorded."""
+    unrecorded = [key for key, machine in elsewhere.items() if machine == NOT_RECORDED]
+    recorded = {key: machine for key, machine in elsewhere.items() if machine != NOT_RECORDED}
+    lines = []
+    if recorded:
+        lines += ["", "**Measured on another machine: " + "; ".join(
+            f"{key} ({machine})" for key, machine in recorded.items()) + ".** Their times and "
+            "errors are that machine's (each part's ratios set both simulators against each "
+            "other in its own run). Taichi compiles for the CPU it runs on, and a chaotic "
+            "scene's trajectory, its predictable horizon and so its errors move with the "
+            "rounding; the fingerprint that carries a part over reads that rounding, so here "
+            "such a part may read as measured with an earlier simulator when only the machine "
+            "differs."]
+    if unrecorded:
+        lines += ["", f"**Machine not recorded: {', '.join(unrecorded)}** (measured before "
+                  "parts recorded the machine that measured them, 2026-11-29)."]
+    return lines
+
+
 def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
                  presets: dict[str, tuple[int, int]], command: str) -> None:
     doc.parent.mkdir(parents=True, exist_ok=True)
@@ -236,7 +263,9 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
         f"Written by `{command}` on {date.today().isoformat()} "
         f"({'quick' if summary['quick'] else 'full'} plan, {summary['minutes']:.0f} min; "
         f"Blender: {summary['blender']}). The CSV and the summary are in the command's output "
-        "folder. Times are wall-clock seconds per simulated second on this machine; each scene "
+        f"folder. Times are wall-clock seconds per simulated second on this machine "
+        f"({summary.get('this_machine', 'not recorded')}) unless a part is named below as "
+        "measured elsewhere; each scene "
         "and fabric (its reference, our runs and Blender's) was measured in one run, and the "
         "minutes are the sum over those runs. Ours runs on one thread (a dataset run gives "
         "each core a simulation of its own); Blender with its default threads, which use both "
@@ -287,6 +316,7 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
             "reference_fingerprint`), and were read from the study cache; the ladders' run "
             "times are that run's. Every other figure of these parts was measured in their own "
             "run."]),
+        *_machine_lines(summary.get("other_machine_parts", {})),
         *([] if not (out / STATE_NOTE).is_file() else [
             "", (out / STATE_NOTE).read_text().strip("\n")]),
         "",

@@ -370,9 +370,25 @@ def saved_part_verdict(part: dict, signature: dict, have_blender: bool, wanted: 
         return "carried", (f"reused: measured with simulator sources "
                            f"{part['signature']['simulator']}, which behave as today's on it")
     if not wanted and measured_earlier(part, signature):
-        return "reported", ("measured with an earlier simulator, Blender reference or timing; "
-                            "reported as such")
+        elsewhere = measured_elsewhere(part)
+        return "reported", ("measured with an earlier simulator, Blender reference or timing"
+                            + (f", on another machine ({elsewhere})" if elsewhere else "")
+                            + "; reported as such")
     return None
+
+
+NOT_RECORDED = "not recorded"  # the machine of a part saved before parts recorded it
+
+
+def measured_elsewhere(part: dict) -> str | None:
+    """The machine that measured a saved part when it is not this one (study.machine), "not
+    recorded" for parts saved before the study recorded it, None for this machine. A
+    fingerprint reads the CPU's rounding, so a part measured on another CPU may read as
+    measured with an earlier simulator here even where the sources are today's."""
+    from datagen.study.machine import this_machine
+
+    machine = part.get("machine", NOT_RECORDED)
+    return None if machine == this_machine() else machine
 
 
 def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_blender: bool,
@@ -382,6 +398,7 @@ def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_ble
     from datagen.errors import RejectedSequence
     from datagen.study import blender as peer
     from datagen.study.fingerprint import part_fingerprint
+    from datagen.study.machine import this_machine
     from datagen.study.run import run_ours
     from datagen.study.scenes import build_scene
 
@@ -433,6 +450,7 @@ def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_ble
             "predictable_frames": pred, "blender_vs_ours_mm": gap,
             "blender_halving": halving,
             "blender": peer.blender_version() if have_blender else "absent",
+            "machine": this_machine(),
             "minutes": (time.time() - t_start) / 60, "rows": [asdict(r) for r in rows]}
 
 
@@ -486,6 +504,7 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
         raise click.UsageError(f"--part {', '.join(sorted(only - keys))}: not a part of the "
                                f"{'quick' if quick else 'full'} plan ({', '.join(sorted(keys))})")
     from datagen.study.fingerprint import part_fingerprint
+    from datagen.study.machine import this_machine
 
     parts, missing, earlier, carried, timed_with_setup = [], [], [], [], []
     earlier_blender: dict[str, int] = {}
@@ -532,6 +551,9 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
         "timed_with_setup_parts": timed_with_setup,
         "earlier_reference_parts": {p["key"]: p["ladder_sources"] for p in parts
                                     if p.get("ladder_sources")},
+        "this_machine": this_machine(),
+        "other_machine_parts": {p["key"]: measured_elsewhere(p) for p in parts
+                                if measured_elsewhere(p)},
         "quick": quick, "minutes": sum(p["minutes"] for p in parts),
         "ladders": {p["key"]: p["ladder"] for p in parts},
         "predictable_frames": {p["key"]: p["predictable_frames"] for p in parts},
@@ -556,7 +578,9 @@ def write_outputs(out: Path, rows: list[Row], summary: dict,
             w.writerow(asdict(r))
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
     plot(out / "accuracy-vs-time.png", rows, presets,
-         set(summary.get("earlier_simulator_parts", [])))
+         set(summary.get("earlier_simulator_parts", [])),
+         {key for key, machine in summary.get("other_machine_parts", {}).items()
+          if machine != NOT_RECORDED})
 
 
 def pareto(points: list[tuple[float, float]]) -> list[int]:
@@ -571,9 +595,10 @@ def pareto(points: list[tuple[float, float]]) -> list[int]:
 
 
 def plot(path: Path, rows: list[Row], presets: dict[str, tuple[int, int]] | None = None,
-         earlier: set[str] | None = None) -> None:
+         earlier: set[str] | None = None, elsewhere: set[str] | None = None) -> None:
     """The Pareto plot, a panel per scene and fabric; `earlier` ("scene/fabric") panels were
-    measured with an earlier simulator and say so in their titles."""
+    measured with an earlier simulator, `elsewhere` panels on another machine, and say so in
+    their titles."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -610,8 +635,10 @@ def plot(path: Path, rows: list[Row], presets: dict[str, tuple[int, int]] | None
         ax.set_yscale("log")
         ax.set_xlabel("wall-clock seconds per simulated second")
         ax.set_ylabel("RMS error over the predictable horizon (mm)")
-        ax.set_title(f"{scene}, {fabric}" + ("\n(earlier simulator)"
-                                               if f"{scene}/{fabric}" in (earlier or ()) else ""))
+        marks = [mark for mark, keys in (("earlier simulator", earlier),
+                                         ("another machine", elsewhere))
+                 if f"{scene}/{fabric}" in (keys or ())]
+        ax.set_title(f"{scene}, {fabric}" + (f"\n({', '.join(marks)})" if marks else ""))
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()

@@ -1,0 +1,79 @@
+"""How converged is Blender's reference on a body scene? A study, not a product path.
+
+The accuracy study measures Blender's error at its timed qualities (5, 10, 20 steps a frame)
+against its own quality 320 run. On the sheets quality 160 is 0.3-0.9 mm from 320, but on the
+body scenes 8-11 mm (docs/accuracy-vs-time.md), so 320 itself may be that far from converged,
+and Blender's error at quality 5 (31-37 mm there) would carry that uncertainty. This runs one
+study part's scene in Blender at the timed qualities and at 160, 320 and 640, over the part's
+predictable horizon (from the study's summary), and prints each run's distance from 320 and
+from 640 and each halving (q against 2q), RMS mm over that horizon as the study measures it.
+
+    python -m benchmarks.study_blender_reference --part tshirt_walk/denim
+
+About 25 minutes for the denim t-shirt (11 frames; quality 640 is 128 times quality 5's
+steps); run it alone. Its figures are quoted in docs/accuracy-vs-time.md's state note.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+from benchmarks.common import REPO, machine
+from datagen.study import blender as peer
+from datagen.study.metrics import rms_distance
+from datagen.study.scenes import build_scene
+
+SUMMARY = REPO / "benchmarks" / "results" / "accuracy" / "summary.json"
+OUT = REPO / "benchmarks" / "results" / "blender_reference.json"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--part", default="tshirt_walk/denim", help="scene/fabric of the study")
+    parser.add_argument("--qualities", type=int, nargs="+", default=[5, 10, 20, 160, 320, 640])
+    args = parser.parse_args()
+    summary = json.loads(SUMMARY.read_text())
+    if args.part not in summary["predictable_frames"]:
+        raise SystemExit(f"{SUMMARY}: field 'predictable_frames' has no part {args.part!r} "
+                         f"(parts: {', '.join(summary['predictable_frames'])})")
+    horizon = summary["predictable_frames"][args.part]
+    scene_name, fabric = args.part.split("/")
+    # The study's scene cut to its horizon: frames past it do not change the ones before.
+    scene = build_scene(scene_name, fabric, frames=horizon)
+    runs = {}
+    for q in sorted(args.qualities):
+        t = time.perf_counter()
+        run = peer.run_blender(scene, q, timeout=4 * 3600.0)
+        runs[q] = run
+        print(f"q{q}: {run.seconds_per_simulated_second:.1f} s per simulated second "
+              f"({time.perf_counter() - t:.0f} s)", flush=True)
+    top = max(runs)
+    marks = [q for q in (320, top) if q in runs]
+    rows = []
+    for q, run in runs.items():
+        row = {"quality": q, "s_per_sim_s": run.seconds_per_simulated_second}
+        for m in marks:
+            row[f"mm_to_q{m}"] = 1000 * rms_distance(run.positions, runs[m].positions, horizon)
+        if 2 * q in runs:
+            row["halving_mm"] = 1000 * rms_distance(run.positions, runs[2 * q].positions,
+                                                    horizon)
+        rows.append(row)
+    OUT.write_text(json.dumps({"part": args.part, "horizon_frames": horizon,
+                               "blender": peer.blender_version(), "machine": machine(),
+                               "date": time.strftime("%Y-%m-%d"), "rows": rows},
+                              indent=1) + "\n")
+    head = " | ".join(f"mm to q{m}" for m in marks)
+    print(f"\n{args.part}, {horizon} frames, {peer.blender_version()}, {machine()}\n")
+    print(f"| quality | s per simulated second | {head} | q against 2q mm |")
+    print("|---" * (3 + len(marks)) + "|")
+    for row in rows:
+        cells = " | ".join(f"{row[f'mm_to_q{m}']:.2f}" for m in marks)
+        halving = f"{row['halving_mm']:.2f}" if "halving_mm" in row else ""
+        print(f"| {row['quality']} | {row['s_per_sim_s']:.1f} | {cells} | {halving} |")
+    print(f"\nWritten to {OUT.relative_to(REPO)}.")
+
+
+if __name__ == "__main__":
+    main()
