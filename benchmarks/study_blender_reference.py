@@ -10,8 +10,10 @@ from 640 and each halving (q against 2q), RMS mm over that horizon as the study 
 
     python -m benchmarks.study_blender_reference --part tshirt_walk/denim
 
-About 25 minutes for the denim t-shirt (11 frames; quality 640 is 128 times quality 5's
-steps); run it alone. Its figures are quoted in docs/accuracy-vs-time.md's state note.
+About 15 minutes for the denim t-shirt (11 frames) at the default qualities, 640 alone 7;
+`--qualities ... 1280 --keep DIR` adds 14 and keeps each run for later calls. Run it alone
+(Blender uses both cores). Its figures are quoted in the study's state note
+(docs/accuracy-vs-time.md).
 """
 
 from __future__ import annotations
