@@ -40,7 +40,9 @@ def main() -> None:
     parser.add_argument("--part", default="tshirt_walk/denim", help="scene/fabric of the study")
     parser.add_argument("--qualities", type=int, nargs="+", default=[5, 10, 20, 160, 320, 640])
     parser.add_argument("--keep", type=Path, default=None,
-                        help="keep each Blender run here and reuse it in a later call")
+                        help="keep each Blender run here and reuse it in a later call on "
+                             "the same part and horizon (runs are not checked against the "
+                             "scene: empty DIR when the scene or Blender changes)")
     parser.add_argument("--horizon", type=int, default=None,
                         help="frames to measure over, for a scene that is not a study part "
                              "(bench_sim's tube_cylinder: its horizon in docs/benchmarks.md)")
@@ -55,7 +57,7 @@ def main() -> None:
     scene = build_scene(scene_name, fabric, frames=horizon)
     runs = {}
     for q in sorted(args.qualities):
-        kept = args.keep / f"{scene_name}-{fabric}-q{q}.npz" if args.keep else None
+        kept = (args.keep / f"{scene_name}-{fabric}-{horizon}f-q{q}.npz") if args.keep else None
         if kept and kept.exists():  # a run of an earlier call (quality 1280 is 40 minutes)
             d = np.load(kept)
             runs[q] = Run(f"blender q{q}", d["positions"], float(d["wall"]),
