@@ -4,16 +4,18 @@ The accuracy study measures Blender's error at its timed qualities (5, 10, 20 st
 against its own quality 320 run. On the sheets quality 160 is 0.3-0.9 mm from 320, but on the
 body scenes 8-11 mm (docs/accuracy-vs-time.md), so 320 itself may be that far from converged,
 and Blender's error at quality 5 (31-37 mm there) would carry that uncertainty. This runs one
-study part's scene in Blender at the timed qualities and at 160, 320 and 640, over the part's
-predictable horizon (from the study's summary), and prints each run's distance from 320 and
-from 640 and each halving (q against 2q), RMS mm over that horizon as the study measures it.
+study part's scene in Blender at the timed qualities and at 160, 320 and 640 (or the
+qualities given), over the part's predictable horizon (from the study's summary, or
+`--horizon` for a scene that is not a part), and prints each run's distance from every run at
+quality 320 or more and each halving (q against 2q), RMS mm over that horizon as the study
+measures it.
 
     python -m benchmarks.study_blender_reference --part tshirt_walk/denim
 
 About 15 minutes for the denim t-shirt (11 frames) at the default qualities, 640 alone 7;
-`--qualities ... 1280 --keep DIR` adds 14 and keeps each run for later calls. Run it alone
-(Blender uses both cores). Its figures are quoted in the study's state note
-(docs/accuracy-vs-time.md).
+`--qualities ... 1280` adds 14. `--keep` keeps each run in the study cache
+(datagen.study.cache, under the scene's sources) for later calls. Run it alone (Blender uses
+both cores). Its figures are quoted in the study's state note (docs/accuracy-vs-time.md).
 """
 
 from __future__ import annotations
@@ -21,12 +23,12 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 
 from benchmarks.common import REPO, machine
 from datagen.study import blender as peer
+from datagen.study.cache import cached
 from datagen.study.metrics import rms_distance
 from datagen.study.run import Run
 from datagen.study.scenes import build_scene
@@ -39,10 +41,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--part", default="tshirt_walk/denim", help="scene/fabric of the study")
     parser.add_argument("--qualities", type=int, nargs="+", default=[5, 10, 20, 160, 320, 640])
-    parser.add_argument("--keep", type=Path, default=None,
-                        help="keep each Blender run here and reuse it in a later call on "
-                             "the same part and horizon (runs are not checked against the "
-                             "scene: empty DIR when the scene or Blender changes)")
+    parser.add_argument("--keep", action="store_true",
+                        help="keep each Blender run in the study cache and reuse it in a later "
+                             "call on the same part, horizon and sources")
     parser.add_argument("--horizon", type=int, default=None,
                         help="frames to measure over, for a scene that is not a study part "
                              "(bench_sim's tube_cylinder: its horizon in docs/benchmarks.md)")
@@ -57,20 +58,18 @@ def main() -> None:
     scene = build_scene(scene_name, fabric, frames=horizon)
     runs = {}
     for q in sorted(args.qualities):
-        kept = (args.keep / f"{scene_name}-{fabric}-{horizon}f-q{q}.npz") if args.keep else None
-        if kept and kept.exists():  # a run of an earlier call (quality 1280 is 40 minutes)
-            d = np.load(kept)
-            runs[q] = Run(f"blender q{q}", d["positions"], float(d["wall"]),
-                          float(d["simulated"]), {})
-            print(f"q{q}: kept from {kept}", flush=True)
-            continue
         t = time.perf_counter()
-        run = peer.run_blender(scene, q, timeout=4 * 3600.0)
-        runs[q] = run
-        if kept:
-            kept.parent.mkdir(parents=True, exist_ok=True)
-            np.savez(kept, positions=run.positions, wall=run.wall, simulated=run.simulated)
-        print(f"q{q}: {run.seconds_per_simulated_second:.1f} s per simulated second "
+
+        def blender(q=q) -> dict[str, np.ndarray]:
+            run = peer.run_blender(scene, q, timeout=4 * 3600.0)
+            return {"positions": run.positions, "wall": np.float64(run.wall),
+                    "simulated": np.float64(run.simulated)}
+
+        key = {"blender_run": scene_name, "fabric": fabric, "frames": horizon, "quality": q}
+        d = cached(key, blender, use_cache=args.keep)
+        runs[q] = Run(f"blender q{q}", d["positions"], float(d["wall"]), float(d["simulated"]),
+                      {})
+        print(f"q{q}: {runs[q].seconds_per_simulated_second:.1f} s per simulated second "
               f"({time.perf_counter() - t:.0f} s)", flush=True)
     marks = [q for q in runs if q >= 320] or [max(runs)]  # the candidate references
     rows = []

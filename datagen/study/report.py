@@ -264,7 +264,7 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
         f"({'quick' if summary['quick'] else 'full'} plan, {summary['minutes']:.0f} min; "
         f"Blender: {summary['blender']}). The CSV and the summary are in the command's output "
         f"folder. Times are wall-clock seconds per simulated second on this machine "
-        f"({summary.get('this_machine', 'not recorded')}) unless a part is named below as "
+        f"({summary.get('this_machine', NOT_RECORDED)}) unless a part is named below as "
         "measured elsewhere; each scene "
         "and fabric (its reference, our runs and Blender's) was measured in one run, and the "
         "minutes are the sum over those runs. Ours runs on one thread (a dataset run gives "

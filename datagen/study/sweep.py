@@ -552,8 +552,8 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
         "earlier_reference_parts": {p["key"]: p["ladder_sources"] for p in parts
                                     if p.get("ladder_sources")},
         "this_machine": this_machine(),
-        "other_machine_parts": {p["key"]: measured_elsewhere(p) for p in parts
-                                if measured_elsewhere(p)},
+        "other_machine_parts": {p["key"]: machine for p in parts
+                                if (machine := measured_elsewhere(p))},
         "quick": quick, "minutes": sum(p["minutes"] for p in parts),
         "ladders": {p["key"]: p["ladder"] for p in parts},
         "predictable_frames": {p["key"]: p["predictable_frames"] for p in parts},
