@@ -8,7 +8,12 @@ import click
 import numpy as np
 import pytest
 
-from datagen.study.metrics import final_distance, max_distance, rms_distance
+from datagen.study.metrics import (
+    collider_penetration,
+    final_distance,
+    max_distance,
+    rms_distance,
+)
 from datagen.study.sweep import CHAOS_MM, pareto, predictable_frames
 
 
@@ -688,3 +693,41 @@ def test_the_machine_label_names_the_first_cpu_and_digests_its_flags_in_any_orde
     assert label == cpu_label(cpuinfo("avx512f fpu avx2"))
     assert label != cpu_label(cpuinfo("fpu avx2"))  # no AVX-512: other code, maybe other rounding
     assert label != cpu_label(cpuinfo("fpu avx2 avx512f", model="1"))
+
+
+def test_collider_penetration_counts_vertices_inside_and_deeper_than_the_thickness():
+    """A unit sphere (icosphere, 4 subdivisions) and 100 cloth vertices on a ray: 10 at 2 mm
+    inside (inside, not deep at a 5 mm thickness), 5 at 20 mm inside (deep), the rest 5 mm
+    outside. Frame 0 (the start) is not counted; the share is the worst frame's."""
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    # The mesh's surface along +z lies slightly inside the unit sphere: measure from it.
+    top = float(sphere.vertices[:, 2].max())
+    radii = np.full(100, top + 0.005)
+    radii[:10] = top - 0.002
+    radii[10:15] = top - 0.020
+    frame = np.stack([np.zeros(100), np.zeros(100), radii], axis=1)
+    outside = np.stack([np.zeros(100), np.zeros(100), np.full(100, top + 0.005)], axis=1)
+    positions = np.stack([frame, outside, frame, outside])  # worst frames 0 and 2
+    vertices = np.repeat(np.asarray(sphere.vertices)[None], 4, axis=0)
+    inside, deep = collider_penetration(positions, vertices, np.asarray(sphere.faces), 0.005)
+    assert (inside, deep) == (0.15, 0.05)
+    # Over frame 1 alone nothing is inside.
+    assert collider_penetration(positions, vertices, np.asarray(sphere.faces), 0.005,
+                                frames=1) == (0.0, 0.0)
+
+
+def test_blenders_matched_cushion_rests_the_cloth_at_our_thickness():
+    """Blender holds cloth at 8/9 of (its collision distance + the collider's outer thickness);
+    matched, that is each fabric's thickness, with the collider at Blender's smallest outer
+    thickness; the study's cushion is 5 + 10 mm (13.3 mm at rest) whatever the fabric."""
+    from datagen.sim.fabrics import FABRICS
+    from datagen.study.blender import contact_settings
+
+    for name, fabric in FABRICS.items():
+        matched = contact_settings(name, matched=True)
+        rest = 8 / 9 * (matched["collision_distance"] + matched["collider_thickness"])
+        assert rest == pytest.approx(fabric.thickness, rel=1e-12)
+        assert matched["collider_thickness"] == 0.001 and matched["collision_distance"] >= 0.001
+    assert contact_settings("denim") == {"collision_distance": 0.005, "collider_thickness": 0.01}

@@ -21,6 +21,25 @@ from datagen.study.scenes import StudyScene
 
 SCRIPT = Path(__file__).with_name("blender_scene.py")
 
+# Blender holds cloth at 8/9 of (the cloth's collision distance + the collider's outer
+# thickness) from a collider (`min_distance` in its collision.c) and detects contact at the
+# sum. The study's peer runs a cushion of 5 mm + 10 mm (13.3 mm at rest) where ours is the
+# fabric's thickness (4-5 mm), so a garment draped by ours starts inside Blender's cushion.
+BLENDER_REST_FRACTION = 8.0 / 9.0
+BLENDER_MIN_OUTER = 0.001  # the smallest collider outer thickness Blender accepts
+STUDY_CONTACT = {"collision_distance": 0.005, "collider_thickness": 0.01}
+
+
+def contact_settings(fabric: str, matched: bool = False) -> dict[str, float]:
+    """Blender's collision distance and collider outer thickness: the study's cushion, or with
+    `matched` one that rests cloth at our fabric's thickness, as ours does."""
+    thickness = get_fabric(fabric).thickness
+    if not matched:
+        return {"collision_distance": max(thickness, STUDY_CONTACT["collision_distance"]),
+                "collider_thickness": STUDY_CONTACT["collider_thickness"]}
+    return {"collision_distance": thickness / BLENDER_REST_FRACTION - BLENDER_MIN_OUTER,
+            "collider_thickness": BLENDER_MIN_OUTER}
+
 
 def blender_executable() -> str | None:
     return shutil.which("blender")
@@ -34,8 +53,8 @@ def blender_version() -> str:
     return out.stdout.splitlines()[0].strip() if out.stdout else "unknown"
 
 
-def scene_input(scene: StudyScene, quality: int) -> dict:
-    """The npz payload for blender_scene.py."""
+def scene_input(scene: StudyScene, quality: int, matched_contact: bool = False) -> dict:
+    """The npz payload for blender_scene.py; `matched_contact`: see contact_settings."""
     x0 = np.concatenate([g.vertices for g in scene.garments]).astype(np.float64)
     # The body scenes start draped (stretched under gravity): Blender takes its rest lengths and
     # angles from a shape key holding the garments' rest metric, as ours does.
@@ -68,14 +87,14 @@ def scene_input(scene: StudyScene, quality: int) -> dict:
         shear=preset.shear, bending=preset.bending, tension_damping=preset.tension_damping,
         compression_damping=preset.compression_damping, shear_damping=preset.shear_damping,
         air_damping=preset.air_damping, bending_damping=preset.bending_damping,
-        collision_distance=max(get_fabric(fabric).thickness, 0.005), collision_quality=2,
-        self_collision=False, collider_thickness=0.01, collider_friction=5.0,
+        collision_quality=2, self_collision=False, collider_friction=5.0,
+        **contact_settings(fabric, matched_contact),
         pinned=pinned, pin_frames=pin_frames,
     )
 
 
 def run_blender(scene: StudyScene, quality: int, timeout: float = 3600.0,
-                threads: int | None = None) -> Run:
+                threads: int | None = None, matched_contact: bool = False) -> Run:
     """The scene in headless Blender at `quality` steps per frame, timed by Blender's own frame
     times; `threads` sets Blender's thread count (`-t`; None: its default, every core) and its
     OpenMP threads with it: `-t` alone leaves OpenMP a thread per core, and two Blenders at
@@ -85,7 +104,7 @@ def run_blender(scene: StudyScene, quality: int, timeout: float = 3600.0,
         raise RuntimeError("Blender is not installed (apt-get install blender)")
     with tempfile.TemporaryDirectory() as tmp:
         src, dst = Path(tmp) / "in.npz", Path(tmp) / "out.npz"
-        np.savez(src, **scene_input(scene, quality))
+        np.savez(src, **scene_input(scene, quality, matched_contact))
         cores = ["-t", str(threads)] if threads else []
         env = {**os.environ, "OMP_NUM_THREADS": str(threads)} if threads else None
         r = subprocess.run([exe, "-b", *cores, "--factory-startup", "--python-exit-code", "1",
