@@ -8,6 +8,7 @@ import json
 import pytest
 
 from benchmarks import bench_gpu, bench_sim
+from datagen.qa import DEEP_SHARE_MAX
 
 
 def test_gpu_report_reads_the_peer_rows_of_the_same_sources_and_refuses_others(
@@ -31,6 +32,12 @@ def test_the_committed_peer_rows_cover_every_peer_scene():
     assert keys == {(f"{scene} {res}", fabric) for scene, res in bench_sim.PEER_SCENES
                     for fabric in bench_sim.FABRICS}
     assert all(r["blender_err_mm"] > 0 and r["ours_s_per_sim_s"] > 0 for r in data["rows"])
+    # Blender's timed run kept the cloth out of the collider by the QA's bound (a run through
+    # it is no peer to time), with the cushion matched to ours wherever that held.
+    for r in data["rows"]:
+        assert r["blender_deep_share_max"] <= DEEP_SHARE_MAX
+        matched_held = r["blender_matched_deep_share"] <= DEEP_SHARE_MAX
+        assert r["blender_contact"] == ("matched" if matched_held else "study")
     # Blender's error is against a run that is itself checked: quality 320 against 160
     assert all(r["blender_ref_halving_mm"] >= 0 for r in data["rows"])
     # At Blender's error both simulators' errors are means over the same starts, the bound
