@@ -299,10 +299,10 @@ def machine_row(row: dict, scene_name: str, resolution: str, fabric: str, log) -
 
     ours = two_core_figures((scene_name, fabric, resolution), PEER_EFFECTS)["rate_all"]
     scene = build_scene(scene_name, fabric, resolution, frames=RATE_FRAMES)
+    matched = row["blender_contact"] == "matched"  # the cushion of the row's Blender runs
     with ThreadPoolExecutor(2) as pool:
-        runs = list(pool.map(lambda _: peer.run_blender(
-            scene, BLENDER_QUALITY, threads=1, matched_contact=row["blender_contact"] == "matched"),
-                             range(2)))
+        runs = list(pool.map(lambda _: peer.run_blender(scene, BLENDER_QUALITY, threads=1,
+                                                        matched_contact=matched), range(2)))
     blender_pair = sum(r.simulated for r in runs) / max(r.wall for r in runs)
     blender_one = 1.0 / row["blender_s_per_sim_s"]
     out = {"scene": row["scene"], "fabric": fabric, "ours": ours, "blender_pair": blender_pair,
@@ -517,8 +517,7 @@ def main(argv: list[str] | None = None) -> None:
         PEER_JSON.write_text(json.dumps({
             "date": time.strftime("%Y-%m-%d"), "command": COMMAND,
             "blender": peer.blender_version(), "source": source_digest(),
-            "cpu": this_machine(), "rows": rows,
-            "machine": machine,
+            "cpu": this_machine(), "rows": rows, "machine": machine,
         }, indent=1, default=float) + "\n")
 
 
