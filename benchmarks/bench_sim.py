@@ -34,12 +34,11 @@ import numpy as np
 from benchmarks.common import REPO, write_section
 from datagen.errors import RejectedSequence
 from datagen.qa import DEEP_SHARE_MAX
-from datagen.sim.fabrics import get_fabric
 from datagen.sim.simulate import QUALITY_PRESETS
 from datagen.study import blender as peer
 from datagen.study.cache import source_digest
 from datagen.study.machine import this_machine
-from datagen.study.metrics import collider_penetration, rms_distance
+from datagen.study.metrics import rms_distance, scene_penetration
 from datagen.study.run import PEER_EFFECTS, run_ours
 from datagen.study.scenes import build_scene
 from datagen.study.sweep import CHAOS_MM, TWIN_METRES, predictable_frames, run_worker
@@ -103,14 +102,12 @@ def float64_reference(scene_name: str, fabric: str, resolution: str,
     return ref, horizon
 
 
-def peer_contact(scene) -> tuple[bool, float]:
-    """Whether Blender runs `scene` with the cushion matched to our thickness (see above), and
-    the deep share of its quality 5 run with that cushion."""
-    track = scene.track
+def peer_contact(scene):
+    """Whether Blender runs `scene` with the cushion matched to our thickness (see above), the
+    deep share of its quality 5 run with that cushion, and that run."""
     run = peer.run_blender(scene, BLENDER_QUALITY, matched_contact=True)
-    deep = collider_penetration(run.positions, track.vertices, track.faces[track.face_mask],
-                                get_fabric(scene.fabric).thickness)[1]
-    return deep <= DEEP_SHARE_MAX, deep
+    deep = scene_penetration(run.positions, scene)[1]
+    return deep <= DEEP_SHARE_MAX, deep, run
 
 
 def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
@@ -118,12 +115,13 @@ def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
     timed_scene = build_scene(scene_name, fabric, resolution, frames=RATE_FRAMES)
     ours = run_ours(timed_scene, "xpbd", sub, it)  # PEER_EFFECTS: what the peer runs
     own = run_ours(timed_scene, "xpbd", sub, it, effects="auto")  # the scene's own
-    matched, matched_deep = peer_contact(timed_scene)
+    matched, matched_deep, trial = peer_contact(timed_scene)
 
     def blender_run(scene, quality: int):
         return peer.run_blender(scene, quality, matched_contact=matched)
 
-    blender = blender_run(timed_scene, BLENDER_QUALITY)
+    # Matched, the trial is the timed run (the same scene, quality and cushion).
+    blender = trial if matched else blender_run(timed_scene, BLENDER_QUALITY)
     short = build_scene(scene_name, fabric, resolution, frames=ERROR_FRAMES)
     ref, h = float64_reference(scene_name, fabric, resolution)
     half = run_worker(scene_name, fabric, resolution, "implicit", REF_SUBSTEPS // 2, 20, True,
@@ -148,10 +146,8 @@ def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
     row["blender_contact"] = "matched" if matched else "study"
     row["blender_matched_deep_share"] = matched_deep
     # Whether Blender's timed run kept the cloth out of the collider, by the QA's measure.
-    track = timed_scene.track
-    row["blender_deep_share_max"] = collider_penetration(
-        blender.positions, track.vertices, track.faces[track.face_mask],
-        get_fabric(fabric).thickness)[1]
+    row["blender_deep_share_max"] = (matched_deep if matched
+                                     else scene_penetration(blender.positions, timed_scene)[1])
     # Blender's error over ERROR_STARTS (the first is the timed run's own start).
     twins = [short_from(short, p) for p in ERROR_STARTS]
     starts = [row["blender_err_mm"]] + [

@@ -22,9 +22,8 @@ import time
 
 from benchmarks.bench_sim import BLENDER_QUALITY, FABRICS, PEER_SCENES, RATE_FRAMES
 from benchmarks.common import REPO, machine
-from datagen.sim.fabrics import get_fabric
 from datagen.study import blender as peer
-from datagen.study.metrics import collider_penetration
+from datagen.study.metrics import scene_penetration
 from datagen.study.scenes import build_scene
 
 OUT = REPO / "benchmarks" / "results" / "blender_contact.json"
@@ -35,12 +34,9 @@ def main() -> None:
     for scene_name, resolution in PEER_SCENES:
         for fabric in FABRICS:
             scene = build_scene(scene_name, fabric, resolution, frames=RATE_FRAMES)
-            track = scene.track
             for matched in (False, True):
                 run = peer.run_blender(scene, BLENDER_QUALITY, matched_contact=matched)
-                inside, deep = collider_penetration(run.positions, track.vertices,
-                                                    track.faces[track.face_mask],
-                                                    get_fabric(fabric).thickness)
+                inside, deep = scene_penetration(run.positions, scene)
                 rows.append({"scene": f"{scene_name} {resolution}", "fabric": fabric,
                              "contact": "matched" if matched else "study",
                              **peer.contact_settings(fabric, matched),

@@ -38,7 +38,7 @@ from benchmarks.common import REPO, machine
 from datagen.sim.fabrics import get_fabric
 from datagen.study import blender as peer
 from datagen.study.cache import cached
-from datagen.study.metrics import collider_penetration, rms_distance
+from datagen.study.metrics import rms_distance, scene_penetration
 from datagen.study.run import Run
 from datagen.study.scenes import build_scene
 from datagen.study.sweep import TWIN_METRES
@@ -98,9 +98,7 @@ def main() -> None:
     marks = [q for q in runs if q >= 320] or [max(runs)]  # the candidate references
     rows = []
     for q, run in runs.items():
-        inside, deep = collider_penetration(run.positions, scene.track.vertices,
-                                            scene.track.faces[scene.track.face_mask],
-                                            thickness, horizon)
+        inside, deep = scene_penetration(run.positions, scene, horizon)
         row = {"quality": q, "s_per_sim_s": run.seconds_per_simulated_second,
                "inside_share_max": inside, "deep_share_max": deep}
         for m in marks:

@@ -46,3 +46,14 @@ def collider_penetration(positions: np.ndarray, vertices: np.ndarray, faces: np.
         inside = max(inside, float(np.mean(signed < 0.0)))
         deep = max(deep, float(np.mean(signed < -thickness)))
     return inside, deep
+
+
+def scene_penetration(positions: np.ndarray, scene,
+                      frames: int | None = None) -> tuple[float, float]:
+    """collider_penetration of a trajectory of a study scene (datagen.study.scenes.StudyScene)
+    against its collider's used faces, at its fabric's thickness."""
+    from datagen.sim.fabrics import get_fabric
+
+    track = scene.track
+    return collider_penetration(positions, track.vertices, track.faces[track.face_mask],
+                                get_fabric(scene.fabric).thickness, frames)
