@@ -33,10 +33,10 @@ import numpy as np
 
 from benchmarks.common import REPO, write_section
 from datagen.errors import RejectedSequence
-from datagen.qa import DEEP_SHARE_MAX
 from datagen.sim.simulate import QUALITY_PRESETS
 from datagen.study import blender as peer
 from datagen.study.cache import source_digest
+from datagen.study.contact import TRIAL_QUALITY, choose_contact
 from datagen.study.machine import this_machine
 from datagen.study.metrics import rms_distance, scene_penetration
 from datagen.study.run import PEER_EFFECTS, run_ours
@@ -52,14 +52,15 @@ PAIR_REPEATS = 3  # pairs of simultaneous t-shirt runs (two_core_figures)
 RATE_FRAMES = 60  # 2 s: the frames both simulators are timed over
 ERROR_FRAMES = 16  # frames simulated for the error measures (the horizon is within these)
 REF_SUBSTEPS = 160
-BLENDER_QUALITY = 5
-# Blender's cushion: matched to our fabric's thickness (datagen.study.blender.contact_settings),
-# so that both simulators hold the cloth at the same distance from the collider, wherever
-# Blender's quality 5 run keeps the cloth out of the collider with it (the QA's deep-share
-# bound); else the study's 5 + 10 mm (13.3 mm at rest), which detects contact three times as
-# far out. `python -m benchmarks.study_blender_contact` (benchmarks/results/blender_contact.json,
-# 2026-11-29): matched, Blender runs the tubes 1.3-1.4x faster and keeps them out, but lets
-# 17-18 % of each sheet through the sphere (it falls at about 2 m/s, 15 mm a step).
+BLENDER_QUALITY = TRIAL_QUALITY  # Blender's default steps per frame
+# Blender's cushion (datagen.study.contact, the rule the accuracy study follows too): matched to
+# our fabric's thickness, so that both simulators hold the cloth at the same distance from the
+# collider, wherever Blender's quality 5 run keeps the cloth out of the collider with it (the
+# QA's deep-share bound); else the study's 5 + 10 mm (13.3 mm at rest), which detects contact
+# three times as far out. `python -m benchmarks.study_blender_contact`
+# (benchmarks/results/blender_contact.json, 2026-11-29): matched, Blender runs the tubes
+# 1.3-1.4x faster and keeps them out, but lets 17-18 % of each sheet through the sphere (it
+# falls at about 2 m/s, 15 mm a step).
 # Blender's converged run: its highest quality affordable over ERROR_FRAMES, checked against
 # half of it. Quality 40 (until 2026-11-27) was not converged: 7.5-10.4 mm from qualities 20,
 # 80 and 160 on the 4k sheets, where 160 and 320 agree to 0.3 mm (Blender's error there read
@@ -102,26 +103,15 @@ def float64_reference(scene_name: str, fabric: str, resolution: str,
     return ref, horizon
 
 
-def peer_contact(scene):
-    """Whether Blender runs `scene` with the cushion matched to our thickness (see above), the
-    deep share of its quality 5 run with that cushion, and that run."""
-    run = peer.run_blender(scene, BLENDER_QUALITY, matched_contact=True)
-    deep = scene_penetration(run.positions, scene)[1]
-    return deep <= DEEP_SHARE_MAX, deep, run
-
-
 def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
     sub, it = QUALITY_PRESETS["xpbd"]["default"]
     timed_scene = build_scene(scene_name, fabric, resolution, frames=RATE_FRAMES)
     ours = run_ours(timed_scene, "xpbd", sub, it)  # PEER_EFFECTS: what the peer runs
     own = run_ours(timed_scene, "xpbd", sub, it, effects="auto")  # the scene's own
-    matched, matched_deep, trial = peer_contact(timed_scene)
-
-    def blender_run(scene, quality: int):
-        return peer.run_blender(scene, quality, matched_contact=matched)
-
+    contact = choose_contact(timed_scene)  # the cushion (see above)
+    blender_run = contact.run
     # Matched, the trial is the timed run (the same scene, quality and cushion).
-    blender = trial if matched else blender_run(timed_scene, BLENDER_QUALITY)
+    blender = blender_run(timed_scene, BLENDER_QUALITY)
     short = build_scene(scene_name, fabric, resolution, frames=ERROR_FRAMES)
     ref, h = float64_reference(scene_name, fabric, resolution)
     half = run_worker(scene_name, fabric, resolution, "implicit", REF_SUBSTEPS // 2, 20, True,
@@ -143,10 +133,9 @@ def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
         "converged_gap_mm": 1000 * rms_distance(b_conv, ref, h),
     }
     row["speedup"] = row["blender_s_per_sim_s"] / row["ours_s_per_sim_s"]
-    row["blender_contact"] = "matched" if matched else "study"
-    row["blender_matched_deep_share"] = matched_deep
+    row.update(contact.record())
     # Whether Blender's timed run kept the cloth out of the collider, by the QA's measure.
-    row["blender_deep_share_max"] = (matched_deep if matched
+    row["blender_deep_share_max"] = (contact.matched_deep_share if contact.matched
                                      else scene_penetration(blender.positions, timed_scene)[1])
     # Blender's error over ERROR_STARTS (the first is the timed run's own start).
     twins = [short_from(short, p) for p in ERROR_STARTS]

@@ -207,7 +207,7 @@ def test_a_part_timed_with_our_set_up_is_reported_marked_and_measured_again_when
     assert f"**Ours timed with its set-up: {part['key']}.**" in doc.read_text()
     measured = []
 
-    def run_part(scene_name, resolution, fabric, plan, have_blender, log):
+    def run_part(scene_name, resolution, fabric, plan, have_blender, log, contact=None):
         measured.append(f"{scene_name}/{fabric}")
         return {**part, "signature": sweep._plan_signature(plan, scene_name)}
 
@@ -626,34 +626,157 @@ def test_a_part_against_an_earlier_blender_quality_is_reported_and_named(tmp_pat
             in doc.read_text())
 
 
+def _fake_blender(monkeypatch, ref, deep_share=0.0):
+    """Blender replaced by runs that land 0.32 m / quality off `ref` in x, and the penetration
+    measure by `deep_share` (this is about the bookkeeping of Blender's series): the list of
+    (quality, matched) calls."""
+    from datagen.study import blender as peer
+    from datagen.study import metrics
+    from datagen.study.run import Run
+
+    calls: list[tuple[int, bool]] = []
+
+    def fake_blender(scene, quality, matched_contact=False):
+        calls.append((quality, matched_contact))
+        positions = ref.copy()
+        positions[..., 0] += 0.32 / quality
+        return Run(f"blender q{quality}", positions, 1.0, 0.1, {})
+
+    monkeypatch.setattr(peer, "run_blender", fake_blender)
+    monkeypatch.setattr(metrics, "scene_penetration", lambda positions, scene: (0.0, deep_share))
+    return calls
+
+
 def test_blenders_series_checks_its_converged_run_against_half_its_quality(monkeypatch):
     """Each part says how far Blender's "converged" run is from half its quality, reusing a
     timed quality's run when it is that half. A fake Blender that lands 0.32 m / quality off
     the reference puts quality 5 at 64 mm, 10 at 32 mm: 32 mm apart."""
     from types import SimpleNamespace
 
-    from datagen.study import blender as peer
-    from datagen.study.run import Run
+    from datagen.study.contact import STUDY_CUSHION_RULE
     from datagen.study.sweep import blender_series, quick_plan
 
     ref = np.zeros((4, 6, 3))
-    calls: list[int] = []
-
-    def fake_blender(scene, quality):
-        calls.append(quality)
-        positions = ref.copy()
-        positions[..., 0] += 0.32 / quality
-        return Run(f"blender q{quality}", positions, 1.0, 0.1, {})
-
-    monkeypatch.setattr(peer, "run_blender", fake_blender)
-    plan = quick_plan()  # converged at quality 10, timed quality 5
+    calls = _fake_blender(monkeypatch, ref, deep_share=0.25)
+    # converged at quality 10, timed quality 5, the study's cushion everywhere
+    plan = replace(quick_plan(), blender_contact=STUDY_CUSHION_RULE)
     scene = SimpleNamespace(n_vertices=6)
-    gap, halving, rows = blender_series(scene, "sheet_sphere", "cotton", "coarse", plan, ref,
-                                        horizon=4, pred=3, log=lambda _: None)
-    assert sorted(calls) == [5, 10]  # quality 5 is the half and a timed run: run once
+    gap, halving, rows, cushion = blender_series(scene, "sheet_sphere", "cotton", "coarse", plan,
+                                                 ref, horizon=4, pred=3, log=lambda _: None)
+    assert sorted(calls) == [(5, False), (10, False)]  # quality 5 is the half and timed: once
     assert halving == {"quality": 5, "against": 10, "mm": pytest.approx(32.0)}
     assert gap == pytest.approx(32.0)  # the converged run against our reference
     assert [r.substeps for r in rows] == [5] and rows[0].rms_mm == pytest.approx(32.0)
+    assert rows[0].deep_share == 0.25  # Blender's run measured as our QA measures ours
+    assert cushion == {"blender_contact": "study"}
+
+
+@pytest.mark.parametrize("deep_share, matched", [(0.0, True), (0.01, True), (0.0101, False)])
+def test_blenders_cushion_is_matched_only_where_its_quality_5_trial_keeps_the_cloth_out(
+        monkeypatch, deep_share, matched):
+    """The rule (datagen.study.contact): Blender's quality 5 with the cushion matched to our
+    thickness; matched for the whole series when that trial keeps the share of the garment
+    deeper than its thickness within the QA's 1 % (the bound included), else the study's
+    cushion. Matched, the trial is the series' quality 5 run (not run twice)."""
+    from types import SimpleNamespace
+
+    from datagen.study.contact import choose_contact
+    from datagen.study.sweep import blender_series, quick_plan
+
+    ref = np.zeros((4, 6, 3))
+    calls = _fake_blender(monkeypatch, ref, deep_share)
+    scene = SimpleNamespace(n_vertices=6)
+    choice = choose_contact(scene)
+    assert (choice.matched, choice.matched_deep_share) == (matched, deep_share)
+    assert choice.record() == {"blender_contact": "matched" if matched else "study",
+                               "blender_matched_deep_share": deep_share}
+    assert calls == [(5, True)]
+    gap, halving, rows, cushion = blender_series(scene, "sheet_sphere", "cotton", "coarse",
+                                                 quick_plan(), ref, horizon=4, pred=3,
+                                                 log=lambda _: None, contact=choice)
+    assert cushion == choice.record()
+    assert calls[1:] == ([(10, True)] if matched else [(10, False), (5, False)])
+    assert rows[0].note.endswith(f"{'matched' if matched else 'study'} cushion")
+    assert rows[0].rms_mm == pytest.approx(32.0)  # whichever run it is, against quality 10
+    other = SimpleNamespace(n_vertices=6)  # the trial stands only for its own scene
+    choice.run(other, 5)
+    assert calls[-1] == (5, matched)
+
+
+def _saved_before_the_cushion_rule(tmp_path, monkeypatch):
+    """_one_finished_part as saved before the plan chose Blender's cushion, with Blender's
+    series, on a machine that has Blender: (part, path, row)."""
+    import json
+
+    from datagen.study import blender as peer
+
+    part, path, row = _one_finished_part(tmp_path)
+    del part["signature"]["blender_contact"]
+    part.update(blender="Blender 3.4.1", blender_vs_ours_mm=20.0)
+    path.write_text(json.dumps(part))
+    monkeypatch.setattr(peer, "blender_executable", lambda: "/usr/bin/blender")
+    monkeypatch.setattr(peer, "blender_version", lambda: "Blender 3.4.1")
+    return part, path, row
+
+
+def test_a_part_measured_with_the_studys_cushion_stands_where_the_rule_keeps_that_cushion(
+        tmp_path, monkeypatch):
+    """Measured again under the cushion rule, a part saved before it runs only the rule's
+    trial: where the trial keeps the study's cushion, the part's Blender series is what the
+    rule would measure, so it stands (saved with the rule and the trial's record); where the
+    trial chooses the matched cushion, the part is measured again with that choice. Reported
+    without measuring, it is named as measured with the study's cushion."""
+    import json
+    from types import SimpleNamespace
+
+    from datagen.study import contact as contact_module
+    from datagen.study import scenes, sweep
+    from datagen.study.contact import CONTACT_RULE, STUDY_CUSHION_RULE, ContactChoice
+
+    part, path, row = _saved_before_the_cushion_rule(tmp_path, monkeypatch)
+    doc = tmp_path / "page.md"
+    summary = sweep.main_cli(str(tmp_path), quick=False, blender=True, doc=str(doc),
+                             command="test", measure=False)
+    assert summary["earlier_blender_contact"] == {part["key"]: STUDY_CUSHION_RULE}
+    assert summary["earlier_simulator_parts"] == []
+    page = doc.read_text()
+    assert f"**Blender with the study's cushion everywhere: {part['key']}.**" in page
+    assert "Blender's cushion the study's, 13.3 mm (the part predates the cushion rule)" in page
+
+    scene = SimpleNamespace(name="the part's scene")
+    monkeypatch.setattr(scenes, "build_scene", lambda *args: scene)
+    measured, tried = [], []
+    deep = {"share": 0.18}
+
+    def choose(s):
+        tried.append(s)
+        return ContactChoice(deep["share"] <= 0.01, deep["share"], None, s)
+
+    def run_part(scene_name, resolution, fabric, plan, have_blender, log, contact=None):
+        measured.append(contact)
+        return {**part, "signature": sweep._plan_signature(plan, scene_name),
+                **contact.record()}
+
+    monkeypatch.setattr(contact_module, "choose_contact", choose)
+    monkeypatch.setattr(sweep, "run_part", run_part)
+    summary, rows = sweep.run_study(tmp_path, only={part["key"]}, log=lambda _: None)
+    saved = json.loads(path.read_text())
+    assert tried == [scene] and measured == [] and rows == [row]
+    assert saved["signature"]["blender_contact"] == CONTACT_RULE
+    assert (saved["blender_contact"], saved["blender_matched_deep_share"]) == ("study", 0.18)
+    assert summary["blender_contact"] == {part["key"]: {"contact": "study",
+                                                        "matched_deep_share": 0.18}}
+    assert summary["earlier_blender_contact"] == {}
+    # it now stands as it is: no trial
+    sweep.run_study(tmp_path, only={part["key"]}, log=lambda _: None)
+    assert tried == [scene] and measured == []
+
+    path.write_text(json.dumps(part))  # saved before the rule again; the trial holds now
+    deep["share"] = 0.004
+    summary, rows = sweep.run_study(tmp_path, only={part["key"]}, log=lambda _: None)
+    assert len(tried) == 2 and [c.matched for c in measured] == [True]
+    assert measured[0].scene is scene  # its trial is the series' quality 5 run
+    assert json.loads(path.read_text())["blender_contact"] == "matched"
 
 
 def test_the_page_gives_each_parts_blender_halving_or_says_it_was_not_measured(tmp_path):
@@ -673,7 +796,7 @@ def test_the_page_gives_each_parts_blender_halving_or_says_it_was_not_measured(t
                  measure=False)
         line = next(ln for ln in doc.read_text().splitlines()
                     if ln.startswith(f"- {part['key']}: Blender converged vs ours"))
-        assert "28.9 mm RMS" in line and line.endswith(expected)
+        assert "28.9 mm RMS" in line and f"{expected}; Blender's cushion" in line
 
 
 def test_the_machine_label_names_the_first_cpu_and_digests_its_flags_in_any_order():

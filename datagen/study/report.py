@@ -251,6 +251,18 @@ def _machine_lines(elsewhere: dict[str, str]) -> list[str]:
     return lines
 
 
+def cushion_text(contact: dict | None) -> str:
+    """Which contact cushion a part's Blender runs had (datagen.study.contact)."""
+    if contact is None or contact.get("matched_deep_share") is None:
+        return "Blender's cushion the study's, 13.3 mm (the part predates the cushion rule)"
+    trial = (f"with the cushion matched to our thickness its quality 5 let "
+             f"{100 * contact['matched_deep_share']:.2f} % of the garment deeper than the "
+             "thickness")
+    if contact["contact"] == "matched":
+        return f"Blender's cushion matched to our thickness ({trial})"
+    return f"Blender's cushion the study's, 13.3 mm ({trial})"
+
+
 def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
                  presets: dict[str, tuple[int, int]], command: str) -> None:
     doc.parent.mkdir(parents=True, exist_ok=True)
@@ -292,6 +304,14 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
                 f"{key} (quality {q})" for key, q in summary["earlier_blender_converged"].items())
             + ".** Their Blender errors are measured against that quality, not against this "
             "plan's, and their halving was not checked."]),
+        *([] if not summary.get("earlier_blender_contact") else [
+            "",
+            "**Blender with the study's cushion everywhere: "
+            + ", ".join(summary["earlier_blender_contact"]) + ".** These parts were measured "
+            "before the plan chose Blender's cushion per part (`datagen.study.contact`): their "
+            "Blender runs hold the cloth 13.3 mm from the collider, not at our thickness, even "
+            "where Blender's quality 5 keeps the cloth out with the matched cushion. `--part` "
+            "measures them under the rule."]),
         *([] if not summary.get("carried_over_parts") else [
             "",
             f"**Carried over: {', '.join(summary['carried_over_parts'])}** were measured "
@@ -426,7 +446,8 @@ def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
                      f"{half['against']} (is that run converged?) {_fmt(half['mm'], 2)} mm"
                      if half else "; Blender's halving not measured (the part predates it)")
             lines.append(f"- {key}: Blender converged vs ours converged {_fmt(mm, 1)} mm RMS "
-                         f"over the predictable horizon{check}")
+                         f"over the predictable horizon{check}; "
+                         + cushion_text(summary.get("blender_contact", {}).get(key)))
         lines += ["", *comparison(rows, presets)]
         table = equal_error_speed(rows)
         if table:

@@ -31,6 +31,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from datagen.study.contact import CONTACT_RULE, STUDY_CUSHION_RULE
 from datagen.study.metrics import final_distance, max_distance, rms_by_frame, rms_distance
 from datagen.study.scenes import SCENE_FRAMES
 
@@ -92,6 +93,10 @@ class Plan:
     # now, as in bench_sim. A part's signature carries its own scene's quality, so a part
     # measured at another quality is reported as measured earlier until it is measured again.
     blender_converged_by_scene: dict[str, int] = field(default_factory=dict)
+    # Blender's contact cushion (datagen.study.contact): CONTACT_RULE chooses per part, by a
+    # matched quality 5 trial; STUDY_CUSHION_RULE runs the study's 13.3 mm everywhere (every
+    # part until 2026-11-29).
+    blender_contact: str = CONTACT_RULE
 
     def start_for(self, scene: str) -> int:
         return self.reference_starts.get(scene, self.reference_start)
@@ -286,6 +291,7 @@ def _plan_signature(plan: Plan, scene: str) -> dict:
         "reference_budget_s": plan.reference_budget_s, "frames": SCENE_FRAMES.get(scene),
         "blender_qualities": plan.blender_qualities,
         "blender_converged": plan.blender_converged_for(scene),
+        "blender_contact": plan.blender_contact,
         "horizon": "shortest twin over the rungs", "timing": TIMING}))
 
 
@@ -341,14 +347,21 @@ def earlier_simulator(part: dict, signature: dict) -> bool:
 
 
 # What may differ in a saved part that is still reported (marked) instead of dropped: the
-# simulator's sources, Blender's converged quality and the timing, which name what the figures
-# stand for.
-EARLIER_KEYS = ("simulator", "blender_converged", "timing")
+# simulator's sources, Blender's converged quality and cushion rule and the timing, which name
+# what the figures stand for.
+EARLIER_KEYS = ("simulator", "blender_converged", "blender_contact", "timing")
+
+
+def contact_rule(signature: dict) -> str:
+    """The Blender cushion rule a part was measured under (parts saved before the rule have
+    none in their signature: they ran the study's cushion)."""
+    return signature.get("blender_contact", STUDY_CUSHION_RULE)
 
 
 def measured_earlier(part: dict, signature: dict) -> bool:
-    """A saved part measured under this plan by another version of the simulator, or against
-    another Blender converged quality: its figures stand for those, and are reported so."""
+    """A saved part measured under this plan by another version of the simulator, against
+    another Blender converged quality or cushion rule: its figures stand for those, and are
+    reported so."""
     saved = part["signature"]
     return saved != signature and _same_but(saved, signature, EARLIER_KEYS)
 
@@ -392,9 +405,10 @@ def measured_elsewhere(part: dict) -> str | None:
 
 
 def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_blender: bool,
-             log) -> dict:
+             log, contact=None) -> dict:
     """One scene and fabric: its reference ladder, its predictable horizon, our sweep and
-    Blender's series, all timed in this one run."""
+    Blender's series, all timed in this one run. `contact`: Blender's cushion when it was
+    already chosen for this scene (datagen.study.contact.ContactChoice)."""
     from datagen.errors import RejectedSequence
     from datagen.study import blender as peer
     from datagen.study.fingerprint import part_fingerprint
@@ -441,44 +455,88 @@ def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_ble
                              "measured at the reference mesh's vertices", pred))
             log(f"  xpbd {other} {sub}x{it}: {asdict(rows[-1])}")
     gap = halving = None
+    cushion: dict = {}
     if have_blender:
-        gap, halving, blender_rows = blender_series(scene, scene_name, fabric, resolution, plan,
-                                                    ref, horizon, pred, log)
+        gap, halving, blender_rows, cushion = blender_series(
+            scene, scene_name, fabric, resolution, plan, ref, horizon, pred, log, contact)
         rows += blender_rows
     return {"key": key, "signature": _plan_signature(plan, scene_name), "behaviour": behaviour,
             "ladder": ladder, "ladder_sources": ladder_sources,
             "predictable_frames": pred, "blender_vs_ours_mm": gap,
             "blender_halving": halving,
-            "blender": peer.blender_version() if have_blender else "absent",
+            "blender": peer.blender_version() if have_blender else "absent", **cushion,
             "machine": this_machine(),
             "minutes": (time.time() - t_start) / 60, "rows": [asdict(r) for r in rows]}
 
 
 def blender_series(scene, scene_name: str, fabric: str, resolution: str, plan: Plan,
-                   ref: np.ndarray, horizon: int, pred: int, log) -> tuple[float, dict, list[Row]]:
+                   ref: np.ndarray, horizon: int, pred: int, log, contact=None
+                   ) -> tuple[float, dict, list[Row], dict]:
     """Blender's side of a part: its converged run's distance from ours (the model difference,
-    mm), its halving check, and a row per timed quality measured against its converged run."""
+    mm), its halving check, a row per timed quality measured against its converged run (with
+    the largest share of the garment deeper in the body than its thickness, as our QA measures
+    it), and which cushion Blender ran (`contact`, or chosen here under the plan's rule)."""
     from datagen.study import blender as peer
+    from datagen.study.contact import choose_contact
+    from datagen.study.metrics import scene_penetration
 
+    cushion: dict = {"blender_contact": "study"}
+    run_blender = peer.run_blender
+    if plan.blender_contact == CONTACT_RULE:
+        contact = contact or choose_contact(scene)
+        cushion, run_blender = contact.record(), contact.run
+        log(f"  blender cushion: {contact.name} (matched quality 5: "
+            f"{100 * contact.matched_deep_share:.2f} % deeper than the thickness)")
     converged_quality = plan.blender_converged_for(scene_name)
-    converged = peer.run_blender(scene, converged_quality)
+    converged = run_blender(scene, converged_quality)
     gap = 1000 * rms_distance(converged.positions, ref, pred)
-    runs = {q: peer.run_blender(scene, q) for q in plan.blender_qualities}
+    runs = {q: run_blender(scene, q) for q in plan.blender_qualities}
     # Is Blender's "converged" run converged? Its distance from half its quality bounds how
     # much of Blender's error at the timed qualities is the converged run's own.
     half_quality = converged_quality // 2
-    half = runs.get(half_quality) or peer.run_blender(scene, half_quality)
+    half = runs.get(half_quality) or run_blender(scene, half_quality)
     halving = {"quality": half_quality, "against": converged_quality,
                "mm": 1000 * rms_distance(half.positions, converged.positions, pred)}
     log(f"  blender q{half_quality} vs q{converged_quality}: {halving['mm']:.2f} mm")
     rows = []
     for q, run in runs.items():
+        deep = scene_penetration(run.positions, scene)[1]
         rows.append(_row(scene_name, fabric, resolution, "blender", q, 1, scene.n_vertices,
                          run.positions, converged.positions, horizon,
-                         run.seconds_per_simulated_second, {},
-                         f"against Blender quality {converged_quality}", pred))
+                         run.seconds_per_simulated_second, {"deep_share": [deep]},
+                         f"against Blender quality {converged_quality}, "
+                         f"{cushion['blender_contact']} cushion", pred))
         log(f"  blender q{q}: {asdict(rows[-1])}")
-    return gap, halving, rows
+    return gap, halving, rows, cushion
+
+
+def probe_contact(part: dict, signature: dict, fingerprint: Callable[[], str],
+                  scene_args: tuple[str, str, str], log) -> tuple[tuple[str, str] | None, object,
+                                                                 dict]:
+    """A saved part measured with the study's cushion before the plan chose Blender's cushion
+    per part (datagen.study.contact), and otherwise standing for this plan: run the rule's
+    trial on its scene (`scene_args`: scene, fabric, resolution). Where the rule keeps the
+    study's cushion, the part's measurement is what the rule would measure, so it stands with
+    this plan's signature and the trial's record: (verdict, None, that part). Else (None, the
+    trial's choice, the part): the part is measured again with that choice, and the trial is
+    not run twice."""
+    from datagen.study.contact import choose_contact
+    from datagen.study.scenes import build_scene
+
+    if "blender_contact" in part["signature"] or signature["blender_contact"] != CONTACT_RULE:
+        return None, None, part
+    amended = {**part, "signature": {**part["signature"], "blender_contact": CONTACT_RULE}}
+    verdict = saved_part_verdict(amended, signature, True, True, fingerprint)
+    if verdict is None:  # measured again whatever the cushion
+        return None, None, part
+    contact = choose_contact(build_scene(*scene_args))
+    log(f"{part['key']}: Blender's matched quality 5 trial: "
+        f"{100 * contact.matched_deep_share:.2f} % deeper than the thickness")
+    if contact.matched:
+        return None, contact, part
+    kind, why = verdict
+    return ((kind, f"{why}; the cushion rule keeps the study's cushion it was measured with"),
+            None, {**amended, **contact.record()})
 
 
 def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=print,
@@ -508,16 +566,25 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
 
     parts, missing, earlier, carried, timed_with_setup = [], [], [], [], []
     earlier_blender: dict[str, int] = {}
+    earlier_contact: dict[str, str] = {}
     for scene_name, resolution in plan.scenes:
         for fabric in plan.fabrics:
             key = f"{scene_name}/{fabric}"
             wanted = measure and (not only or key in only)
             path = _part_path(out, scene_name, resolution, fabric)
+            contact = None
             if path.exists():
                 part = json.loads(path.read_text())
                 signature = _plan_signature(plan, scene_name)
-                verdict = saved_part_verdict(part, signature, have_blender, wanted, partial(
-                    part_fingerprint, scene_name, resolution, fabric, plan))
+                fingerprint = partial(part_fingerprint, scene_name, resolution, fabric, plan)
+                verdict = saved_part_verdict(part, signature, have_blender, wanted, fingerprint)
+                if verdict is None and wanted and have_blender:
+                    probed = probe_contact(part, signature, fingerprint,
+                                           (scene_name, fabric, resolution), log)
+                    verdict, contact, kept = probed
+                    if kept is not part:  # stands under this plan: saved so
+                        part = kept
+                        path.write_text(json.dumps(part, indent=1, default=float))
                 if verdict is not None:
                     kind, why = verdict
                     log(f"{key}: {path}: {why}")
@@ -532,12 +599,14 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
                         quality = part["signature"].get("blender_converged")
                         if quality != signature["blender_converged"]:
                             earlier_blender[key] = quality
+                        if contact_rule(part["signature"]) != signature["blender_contact"]:
+                            earlier_contact[key] = contact_rule(part["signature"])
                     continue
                 log(f"{key}: {path} was measured under another plan, simulator or timing")
             if not wanted:
                 missing.append(key)
                 continue
-            part = run_part(scene_name, resolution, fabric, plan, have_blender, log)
+            part = run_part(scene_name, resolution, fabric, plan, have_blender, log, contact)
             path.write_text(json.dumps(part, indent=1, default=float))
             parts.append(part)
     if not parts:
@@ -547,6 +616,10 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
         "missing_parts": missing,
         "earlier_simulator_parts": earlier,
         "earlier_blender_converged": earlier_blender,
+        "earlier_blender_contact": earlier_contact,
+        "blender_contact": {p["key"]: {"contact": p.get("blender_contact", "study"),
+                                       "matched_deep_share": p.get("blender_matched_deep_share")}
+                            for p in parts if p["blender"] != "absent"},
         "carried_over_parts": carried,
         "timed_with_setup_parts": timed_with_setup,
         "earlier_reference_parts": {p["key"]: p["ladder_sources"] for p in parts
