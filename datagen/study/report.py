@@ -255,12 +255,11 @@ def cushion_text(contact: dict | None) -> str:
     """Which contact cushion a part's Blender runs had (datagen.study.contact)."""
     if contact is None or contact.get("matched_deep_share") is None:
         return "Blender's cushion the study's, 13.3 mm (the part predates the cushion rule)"
-    trial = (f"with the cushion matched to our thickness its quality 5 let "
-             f"{100 * contact['matched_deep_share']:.2f} % of the garment deeper than the "
-             "thickness")
+    trial = (f"its quality 5 let {100 * contact['matched_deep_share']:.2f} % of the garment "
+             "deeper than the thickness")
     if contact["contact"] == "matched":
         return f"Blender's cushion matched to our thickness ({trial})"
-    return f"Blender's cushion the study's, 13.3 mm ({trial})"
+    return f"Blender's cushion the study's, 13.3 mm (matched to our thickness, {trial})"
 
 
 def write_report(doc: Path, out: Path, rows: list[Row], summary: dict,
