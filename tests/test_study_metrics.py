@@ -668,7 +668,7 @@ def test_blenders_series_checks_its_converged_run_against_half_its_quality(monke
     assert gap == pytest.approx(32.0)  # the converged run against our reference
     assert [r.substeps for r in rows] == [5] and rows[0].rms_mm == pytest.approx(32.0)
     assert rows[0].deep_share == 0.25  # Blender's run measured as our QA measures ours
-    assert cushion == {"blender_contact": "study"}
+    assert cushion == {"blender_contact": "study", "blender_matched_deep_share": None}
 
 
 @pytest.mark.parametrize("deep_share, matched", [(0.0, True), (0.01, True), (0.0101, False)])
@@ -767,9 +767,12 @@ def test_a_part_measured_with_the_studys_cushion_stands_where_the_rule_keeps_tha
     assert summary["blender_contact"] == {part["key"]: {"contact": "study",
                                                         "matched_deep_share": 0.18}}
     assert summary["earlier_blender_contact"] == {}
-    # it now stands as it is: no trial
-    sweep.run_study(tmp_path, only={part["key"]}, log=lambda _: None)
+    # it now stands as it is: no trial; the page names its cushion and the trial's figure
+    sweep.main_cli(str(tmp_path), quick=False, blender=True, doc=str(doc), command="test",
+                   only={part["key"]})
     assert tried == [scene] and measured == []
+    assert ("Blender's cushion the study's, 13.3 mm (matched to our thickness, its quality 5 "
+            "let 18.00 % of the garment deeper than the thickness)") in doc.read_text()
 
     path.write_text(json.dumps(part))  # saved before the rule again; the trial holds now
     deep["share"] = 0.004

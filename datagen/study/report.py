@@ -253,8 +253,10 @@ def _machine_lines(elsewhere: dict[str, str]) -> list[str]:
 
 def cushion_text(contact: dict | None) -> str:
     """Which contact cushion a part's Blender runs had (datagen.study.contact)."""
-    if contact is None or contact.get("matched_deep_share") is None:
+    if contact is None:
         return "Blender's cushion the study's, 13.3 mm (the part predates the cushion rule)"
+    if contact["matched_deep_share"] is None:  # a plan without the rule: no trial
+        return "Blender's cushion the study's, 13.3 mm (the plan's, for every part)"
     trial = (f"its quality 5 let {100 * contact['matched_deep_share']:.2f} % of the garment "
              "deeper than the thickness")
     if contact["contact"] == "matched":

@@ -31,7 +31,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from datagen.study.contact import CONTACT_RULE, STUDY_CUSHION_RULE
+from datagen.study.contact import CONTACT_RULE, STUDY_CUSHION_RULE, ContactChoice
 from datagen.study.metrics import final_distance, max_distance, rms_by_frame, rms_distance
 from datagen.study.scenes import SCENE_FRAMES
 
@@ -405,7 +405,7 @@ def measured_elsewhere(part: dict) -> str | None:
 
 
 def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_blender: bool,
-             log, contact=None) -> dict:
+             log, contact: ContactChoice | None = None) -> dict:
     """One scene and fabric: its reference ladder, its predictable horizon, our sweep and
     Blender's series, all timed in this one run. `contact`: Blender's cushion when it was
     already chosen for this scene (datagen.study.contact.ContactChoice)."""
@@ -471,8 +471,8 @@ def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_ble
 
 
 def blender_series(scene, scene_name: str, fabric: str, resolution: str, plan: Plan,
-                   ref: np.ndarray, horizon: int, pred: int, log, contact=None
-                   ) -> tuple[float, dict, list[Row], dict]:
+                   ref: np.ndarray, horizon: int, pred: int, log,
+                   contact: ContactChoice | None = None) -> tuple[float, dict, list[Row], dict]:
     """Blender's side of a part: its converged run's distance from ours (the model difference,
     mm), its halving check, a row per timed quality measured against its converged run (with
     the largest share of the garment deeper in the body than its thickness, as our QA measures
@@ -481,7 +481,7 @@ def blender_series(scene, scene_name: str, fabric: str, resolution: str, plan: P
     from datagen.study.contact import choose_contact
     from datagen.study.metrics import scene_penetration
 
-    cushion: dict = {"blender_contact": "study"}
+    cushion: dict = {"blender_contact": "study", "blender_matched_deep_share": None}
     run_blender = peer.run_blender
     if plan.blender_contact == CONTACT_RULE:
         contact = contact or choose_contact(scene)
@@ -512,8 +512,8 @@ def blender_series(scene, scene_name: str, fabric: str, resolution: str, plan: P
 
 
 def probe_contact(part: dict, signature: dict, fingerprint: Callable[[], str],
-                  scene_args: tuple[str, str, str], log) -> tuple[tuple[str, str] | None, object,
-                                                                 dict]:
+                  scene_args: tuple[str, str, str], log
+                  ) -> tuple[tuple[str, str] | None, ContactChoice | None, dict]:
     """A saved part measured with the study's cushion before the plan chose Blender's cushion
     per part (datagen.study.contact), and otherwise standing for this plan: run the rule's
     trial on its scene (`scene_args`: scene, fabric, resolution). Where the rule keeps the
@@ -618,9 +618,10 @@ def run_study(out: str | Path, quick: bool = False, blender: bool = True, log=pr
         "earlier_simulator_parts": earlier,
         "earlier_blender_converged": earlier_blender,
         "earlier_blender_contact": earlier_contact,
-        "blender_contact": {p["key"]: {"contact": p.get("blender_contact", "study"),
-                                       "matched_deep_share": p.get("blender_matched_deep_share")}
-                            for p in parts if p["blender"] != "absent"},
+        # parts saved before the cushion rule have no record (they ran the study's cushion)
+        "blender_contact": {p["key"]: {"contact": p["blender_contact"],
+                                       "matched_deep_share": p["blender_matched_deep_share"]}
+                            for p in parts if "blender_contact" in p},
         "carried_over_parts": carried,
         "timed_with_setup_parts": timed_with_setup,
         "earlier_reference_parts": {p["key"]: p["ladder_sources"] for p in parts
