@@ -36,9 +36,9 @@ from datagen.errors import RejectedSequence
 from datagen.sim.simulate import QUALITY_PRESETS
 from datagen.study import blender as peer
 from datagen.study.cache import source_digest
-from datagen.study.contact import TRIAL_QUALITY, choose_contact
+from datagen.study.contact import TRIAL_QUALITY, choose_contact, peer_deep_share
 from datagen.study.machine import this_machine
-from datagen.study.metrics import rms_distance, scene_penetration
+from datagen.study.metrics import rms_distance
 from datagen.study.run import PEER_EFFECTS, run_ours
 from datagen.study.scenes import build_scene
 from datagen.study.sweep import CHAOS_MM, TWIN_METRES, predictable_frames, run_worker
@@ -135,8 +135,7 @@ def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
     row["speedup"] = row["blender_s_per_sim_s"] / row["ours_s_per_sim_s"]
     row.update(contact.record())
     # Whether Blender's timed run kept the cloth out of the collider, by the QA's measure.
-    row["blender_deep_share_max"] = (contact.matched_deep_share if contact.matched
-                                     else scene_penetration(blender.positions, timed_scene)[1])
+    row["blender_deep_share_max"] = peer_deep_share(blender, timed_scene)
     # Blender's error over ERROR_STARTS (the first is the timed run's own start).
     twins = [short_from(short, p) for p in ERROR_STARTS]
     starts = [row["blender_err_mm"]] + [

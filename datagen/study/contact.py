@@ -52,12 +52,22 @@ class ContactChoice:
         return peer.run_blender(scene, quality, matched_contact=self.matched, **kwargs)
 
 
+def peer_deep_share(run: Run, scene: StudyScene) -> float:
+    """The largest share of a Blender run's garment deeper in the collider than its thickness
+    (metrics.scene_penetration, the QA's deep share), measured once per run and kept in its QA
+    series, where the study's rows read ours."""
+    from datagen.study.metrics import scene_penetration
+
+    if "deep_share" not in run.qa:
+        run.qa["deep_share"] = [scene_penetration(run.positions, scene)[1]]
+    return run.qa["deep_share"][0]
+
+
 def choose_contact(scene: StudyScene) -> ContactChoice:
     """Run Blender's trial on `scene` with the matched cushion and choose (see the module)."""
     from datagen.qa import DEEP_SHARE_MAX
     from datagen.study import blender as peer
-    from datagen.study.metrics import scene_penetration
 
     trial = peer.run_blender(scene, TRIAL_QUALITY, matched_contact=True)
-    deep = scene_penetration(trial.positions, scene)[1]
+    deep = peer_deep_share(trial, scene)
     return ContactChoice(deep <= DEEP_SHARE_MAX, deep, trial, scene)

@@ -478,8 +478,7 @@ def blender_series(scene, scene_name: str, fabric: str, resolution: str, plan: P
     the largest share of the garment deeper in the body than its thickness, as our QA measures
     it), and which cushion Blender ran (`contact`, or chosen here under the plan's rule)."""
     from datagen.study import blender as peer
-    from datagen.study.contact import choose_contact
-    from datagen.study.metrics import scene_penetration
+    from datagen.study.contact import choose_contact, peer_deep_share
 
     cushion: dict = {"blender_contact": "study", "blender_matched_deep_share": None}
     run_blender = peer.run_blender
@@ -501,10 +500,10 @@ def blender_series(scene, scene_name: str, fabric: str, resolution: str, plan: P
     log(f"  blender q{half_quality} vs q{converged_quality}: {halving['mm']:.2f} mm")
     rows = []
     for q, run in runs.items():
-        deep = scene_penetration(run.positions, scene)[1]
         rows.append(_row(scene_name, fabric, resolution, "blender", q, 1, scene.n_vertices,
                          run.positions, converged.positions, horizon,
-                         run.seconds_per_simulated_second, {"deep_share": [deep]},
+                         run.seconds_per_simulated_second,
+                         {"deep_share": [peer_deep_share(run, scene)]},
                          f"against Blender quality {converged_quality}, "
                          f"{cushion['blender_contact']} cushion", pred))
         log(f"  blender q{q}: {asdict(rows[-1])}")
