@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import os
 import sys
 from pathlib import Path
@@ -325,9 +326,12 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, so
     if wind:
         try:
             wind_v = tuple(float(x) for x in wind.split(","))
-            assert len(wind_v) == 3
-        except (ValueError, AssertionError):
-            raise click.BadParameter("expected 'x,y,z' in m/s", param_hint="--wind") from None
+        except ValueError:
+            wind_v = ()
+        # float() takes 'nan' and 'inf'; a NaN wind would read as no wind at all.
+        if len(wind_v) != 3 or not all(math.isfinite(v) for v in wind_v):
+            raise click.BadParameter(f"expected 'x,y,z' in m/s, three finite numbers, got "
+                                     f"{wind!r}", param_hint="--wind")
     effect_req = effects if effects in ("auto", "all") else tuple(effects.split(","))
     spec = replace(spec, simulation=replace(spec.simulation, solver=solver, quality=quality,
                                             effects=effect_req, wind=wind_v))

@@ -7,6 +7,8 @@ field path (e.g. `motion.actions.walk`), never silently ignored or clamped.
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
 import types
 from pathlib import Path
 from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
@@ -18,12 +20,25 @@ from datagen.errors import InputError
 T = TypeVar("T")
 
 
+class _Loader(yaml.SafeLoader):
+    """PyYAML follows YAML 1.1, whose floats need a dot and a signed exponent: `1e-3` and
+    `1.0e12` load as strings there and then fail as "expected a number". YAML 1.2 (and so most
+    other readers) takes them as floats; so does this loader (only exponent forms are added)."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."),
+)
+
+
 def load_yaml(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise InputError(path, None, "an existing YAML file", "no such file")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.load(path.read_text(), Loader=_Loader)  # noqa: S506 (a safe loader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}" if mark is not None else "document"
@@ -113,8 +128,13 @@ def _convert(tp: Any, value: Any, source: str | Path | None, path: str) -> Any:
             return value
         raise InputError(source, path, "an integer", value)
     if tp is float:
+        # NaN passes every range check (each comparison is false) and infinity every open
+        # one; neither is a setting, and either would surface frames later as a blow-up.
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
+            number = float(value) if isinstance(value, float) or abs(value) < 2**1023 else math.inf
+            if math.isfinite(number):
+                return number
+            raise InputError(source, path, "a finite number", value)
         raise InputError(source, path, "a number", value)
     if tp is str:
         if isinstance(value, str):

@@ -158,3 +158,14 @@ def test_body_options_the_recipe_draws_are_refused_with_a_pipeline(tmp_path):
     r = run("body", "--pipeline", recipe, "--index", -1, "--out", out)
     assert r.returncode == 2 and "Invalid value for '--index'" in r.stderr, r.stderr
     assert "Traceback" not in r.stderr and not out.exists()
+
+
+@pytest.mark.parametrize("wind", ["nan,0,0", "1,inf,0", "1,2"])
+def test_a_wind_that_is_not_three_finite_numbers_is_refused(tmp_path, wind):
+    """float() takes 'nan': a NaN wind was accepted, and the scene then ran without wind
+    (its strength compared false against zero) and said nothing."""
+    out = tmp_path / "out.h5"
+    r = run("simulate", "--wind", wind, "--frames", 1, "--out", out)
+    assert r.returncode == 2
+    assert "Invalid value for --wind" in r.stderr and repr(wind) in r.stderr, r.stderr
+    assert not out.exists()

@@ -441,6 +441,21 @@ def test_user_fabrics_from_yaml(tmp_path):
     with pytest.raises(InputError, match="flat.yaml: field 'jersey': expected only the "
                                          "top-level key 'fabrics'"):
         load_fabrics(flat)
+    # A user fabric may not take a built-in's name: a shard records the fabric by name.
+    shadow = tmp_path / "shadow.yaml"
+    shadow.write_text("fabrics:\n  cotton:\n    base: cotton\n    stretch: 10.0\n")
+    with pytest.raises(InputError, match=r"shadow.yaml: field 'fabrics.cotton': expected a name "
+                                         r"other than the built-in fabrics.*my_cotton"):
+        load_fabrics(shadow)
+    # NaN would pass the range checks and blow up frames later; exponents without a dot are
+    # numbers (YAML 1.2), not the strings PyYAML's YAML 1.1 makes of them.
+    nan = tmp_path / "nan.yaml"
+    nan.write_text("fabrics:\n  x:\n    base: cotton\n    stretch: .nan\n")
+    with pytest.raises(InputError, match=r"fabrics.x.stretch': expected a finite number, got nan"):
+        load_fabrics(nan)
+    stiff = tmp_path / "stiff.yaml"
+    stiff.write_text("fabrics:\n  x:\n    base: cotton\n    stretch: 1e4\n")
+    assert load_fabrics(stiff)["x"].stretch == 1e4
 
 
 def _explicit_hanging_sheet(substeps: int):

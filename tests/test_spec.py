@@ -98,6 +98,7 @@ def test_distributions(recipe_path):
         ("  actions: {walk: 2, run: 1, spin: 1}", "motion.actions.moonwalk"),
         ("  female_fraction: 0.6666667", "subject.female_fraction"),
         ("seed: 1234", "simulation.effects"),
+        ("seed: 1234", "simulation.settle_seconds"),
     ],
 )
 def test_bad_recipes_name_the_field(tmp_path, patch, field):
@@ -107,6 +108,8 @@ def test_bad_recipes_name_the_field(tmp_path, patch, field):
         "motion.actions.moonwalk": "  actions: {moonwalk: 1}",
         "subject.female_fraction": "  female_fraction: 1.5",
         "simulation.effects": "seed: 1234\nsimulation: {effects: 'auto,self_collision'}",
+        # NaN passes every range check (each comparison is false): rejected as not finite.
+        "simulation.settle_seconds": "seed: 1234\nsimulation: {settle_seconds: .nan}",
     }[field]
     p = tmp_path / "bad.yaml"
     p.write_text(RECIPE.replace(patch, replacement))
@@ -115,6 +118,21 @@ def test_bad_recipes_name_the_field(tmp_path, patch, field):
         sample_scene(loaded, 0)
     assert field in str(exc.value)
     assert "bad.yaml" in str(exc.value)
+
+
+def test_yaml_reads_exponent_floats_as_yaml_1_2_does(tmp_path):
+    """PyYAML alone reads `1e-3` and `2.5E4` as strings (YAML 1.1 wants a dot and a signed
+    exponent); the recipe loader reads them as numbers, and leaves strings and ints alone."""
+    from datagen.config import load_yaml
+
+    p = tmp_path / "numbers.yaml"
+    p.write_text("a: 1e-3\nb: 2.5E4\nc: -.5e+2\nd: 12\ne: 1e\nf: '1e3'\ng: 1_000\n")
+    data = load_yaml(p)
+    assert data == {"a": 0.001, "b": 25000.0, "c": -50.0, "d": 12, "e": "1e", "f": "1e3",
+                    "g": 1000}
+    assert isinstance(data["d"], int)
+    p.write_text(RECIPE.replace("seed: 1234", "seed: 1234\nsimulation: {settle_seconds: 5e-1}"))
+    assert load_recipe(p).recipe.simulation.settle_seconds == 0.5
 
 
 def test_spec_json_errors():

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from datagen.body.anny_model import NEUTRAL_SHAPE
+from datagen.errors import InputError
 from datagen.garment.build import SHIPPED_RESOLUTION
 from datagen.garment.template import (
     MIN_ANGLE,
@@ -20,6 +21,7 @@ from datagen.garment.template import (
     connected_pieces,
     edge_table,
     load_template,
+    read_obj,
     save_template,
     to_garment,
     triangle_angles,
@@ -313,6 +315,11 @@ def test_missing_and_bad_files(tmp_path):
     write_obj(tmp_path / "bad.obj", np.eye(3), np.array([[0, 1, 2]]))
     problems = check_template(tmp_path / "bad.obj")
     assert len(problems) == 1 and "valid JSON" in problems[0]
+    # A NaN coordinate is named by its line; it read as a bounding box of "nan" units before.
+    (tmp_path / "nan.obj").write_text("v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n")
+    with pytest.raises(InputError, match=r"nan.obj: field 'line 3': expected a vertex of "
+                                         r"finite coordinates, got 'v nan 1 0'"):
+        read_obj(tmp_path / "nan.obj")
 
 
 def test_cli_check(shipped, tmp_path):

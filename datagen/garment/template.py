@@ -13,6 +13,7 @@ This module knows no body model: clearance is checked against body arrays that t
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -176,6 +177,9 @@ def read_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
                     ) from None
                 if len(verts[-1]) != 3:
                     raise InputError(path, f"line {lineno}", "a vertex 'v x y z'", line.strip())
+                if not all(math.isfinite(c) for c in verts[-1]):
+                    raise InputError(path, f"line {lineno}", "a vertex of finite coordinates",
+                                     line.strip())
             elif parts[0] == "f":
                 try:
                     ids = [int(p.split("/")[0]) for p in parts[1:]]

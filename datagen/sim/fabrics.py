@@ -160,6 +160,12 @@ def load_fabrics(path: str | Path) -> dict[str, Fabric]:
     for name, values in raw.items():
         if not isinstance(values, dict):
             raise InputError(path, f"fabrics.{name}", "a mapping of parameters", values)
+        if name in FABRICS:
+            # A shard records a fabric by name: a user "cotton" would read as the built-in.
+            raise InputError(path, f"fabrics.{name}",
+                             f"a name other than the built-in fabrics ({', '.join(FABRICS)}); "
+                             f"to change one, name the result and start from it "
+                             f"(my_{name}: {{base: {name}, ...}})", name)
         values = dict(values)
         base = values.pop("base", None)
         if base is not None:
