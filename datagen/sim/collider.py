@@ -178,6 +178,8 @@ class BodyCollider:
         if backend.serial():
             self._build_grid_serial(n_cells)
             return
+        # Parallel backends from here: the kernels' `serialize` flags are False (a test runs
+        # these three kernels serialized to compare them with the one-launch serial grid).
         K.grid_count(
             self.b0,
             self.b1,
@@ -189,7 +191,7 @@ class BodyCollider:
             self.counts,
             self.relative_travel,
             self.tbox,
-            backend.serial(),
+            False,
         )
         K.grid_prefix(self.counts, self.starts, n_cells, self.block_starts)
         total = int(self.starts[n_cells])
@@ -205,7 +207,7 @@ class BodyCollider:
             self.counts,
             self.starts,
             self.items,
-            backend.serial(),
+            False,
         )
         K.grid_sort(self.starts, self.items, n_cells)
         # grid_fill used counts as cursors; they must be zero for the next frame's counting.
