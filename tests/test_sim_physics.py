@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
@@ -10,7 +10,7 @@ from scipy.optimize import minimize
 
 from datagen.sim.collider import BodyCollider
 from datagen.sim.effects import Effects
-from datagen.sim.fabrics import FABRICS
+from datagen.sim.fabrics import FABRICS, get_fabric
 from datagen.sim.model import build_cloth_model, edges_of
 from datagen.sim.scenes import grid_sheet, icosphere
 from datagen.sim.simulate import ColliderTrack, SimOptions, simulate
@@ -208,6 +208,9 @@ def _trampoline_centre_z(outer: bool, inner_fabric: str = "cotton",
     result = simulate(garments, None, SimOptions(settle_seconds=0.0, frames=60,
                                                  fabrics=fabrics or {}))
     assert ("garment_collision" in result.report["effects"]) == outer
+    # The report keeps each fabric's values as simulated (a shard stores them per garment).
+    assert result.report["fabrics"] == {
+        g.fabric: asdict(get_fabric(g.fabric, fabrics)) for g in garments}
     inner_z = float(result.vertices["inner"][-1, rows[n // 2, n // 2], 2])
     outer_z = float(result.vertices["outer"][-1, 60, 2]) if outer else None
     return inner_z, outer_z

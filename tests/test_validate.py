@@ -231,6 +231,62 @@ def test_qa_limits(tmp_path):
     assert code == 0
 
 
+def test_strain_is_checked_against_each_fabrics_stored_parameters(tmp_path):
+    """A shard stores each garment's fabric as simulated (@fabric_parameters, from the sim
+    report), and the validator takes the strain bound from there: a user's fabric is checked
+    (before, it was a warning and its strain went unchecked), and a shard's own values win over
+    a built-in of the same name in another datagen version (with a warning that they differ)."""
+    from dataclasses import asdict, replace
+
+    from datagen.sim.fabrics import FABRICS
+
+    def wearing(fabric, series=0.3):
+        def edit(record):
+            for g in record.garments:
+                g.fabric = fabric.name
+            record.sim.report["fabrics"] = {fabric.name: asdict(fabric)}
+            record.sim.qa["strain_p999"][:] = series  # over cotton's 0.25
+        return edit
+
+    def check(edit) -> list[Problem]:
+        path = tmp_path / "one.h5"
+        path.unlink(missing_ok=True)
+        return _single(tmp_path, edit)
+
+    loose = replace(FABRICS["cotton"], name="jersey", max_strain=0.4, source="my.yaml")
+    problems = check(wearing(loose))
+    assert problems == [], problems
+    with h5py.File(tmp_path / "one.h5") as f:
+        stored = f["sequences/7-000000/garments/upper"].attrs["fabric_parameters"]
+        assert json.loads(stored) == asdict(loose)
+    tight = replace(loose, max_strain=0.28)
+    p = only_error(check(wearing(tight)))
+    assert "qa/strain_p999 reaches 0.3" in p.message and "bound 0.28" in p.message, p.message
+    # Cotton as another version simulated it: its stored bound applies, with a warning.
+    other_cotton = replace(FABRICS["cotton"], max_strain=0.35)
+    problems = check(wearing(other_cotton))
+    assert not errors(problems), problems
+    assert any("'cotton' was simulated with other values than this datagen's built-in"
+               in p.message for p in problems), problems
+
+    # A shard written before the parameters were stored: a user fabric is not checked.
+    def unstored(record):
+        wearing(loose)(record)
+        del record.sim.report["fabrics"]
+    problems = check(unstored)
+    assert not errors(problems)
+    assert any("fabric 'jersey' is not a built-in fabric and the shard does not store its "
+               "parameters" in p.message for p in problems), problems
+    # Damaged parameters are named by garment and field.
+    check(wearing(loose))
+    with h5py.File(tmp_path / "one.h5", "r+") as f:
+        params = asdict(loose) | {"max_strain": "loose"}
+        f["sequences/7-000000/garments/lower"].attrs["fabric_parameters"] = json.dumps(params)
+    p = only_error(validate(tmp_path / "one.h5"))
+    assert ("garments/lower/@fabric_parameters.max_strain': expected a number, got 'loose'"
+            in p.message), p.message
+
+
 def test_shapes_indices_and_finiteness(tmp_path):
     def damage(record):
         record.garments[0].faces[7, 2] = 9999  # upper: past its 240 vertices

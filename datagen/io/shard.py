@@ -330,6 +330,9 @@ def write_garments(group: h5py.Group, garments, sim, trans: np.ndarray, quantize
         g.attrs["type"] = (garment.meta or {}).get("variant") or garment.category
         g.attrs["category"] = garment.category
         g.attrs["fabric"] = garment.fabric
+        if sim is not None and garment.fabric in sim.report.get("fabrics", {}):
+            g.attrs["fabric_parameters"] = json.dumps(sim.report["fabrics"][garment.fabric],
+                                                      sort_keys=True)
         g.attrs["tightness"] = np.asarray(garment.tightness, dtype=np.float64)
         g.attrs["elastic"] = list(garment.elastic)
         g.attrs["layer"] = garment.layer

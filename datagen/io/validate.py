@@ -435,22 +435,48 @@ class _SequenceCheck:
             self.error(str(breach), self.qa)
 
     def strain_limit(self, g: h5py.Group) -> float | None:
-        """The sequence's strain bound (datagen.qa.strain_limit); None, with a warning, when a
-        garment's fabric is not built in (its bound is not known here)."""
-        from datagen.sim.fabrics import FABRICS
+        """The sequence's strain bound (datagen.qa.strain_limit) from the fabrics as simulated
+        (each garment's @fabric_parameters), or, in a shard written before those were stored,
+        from the built-in fabrics by name; None, with a warning, when a garment's fabric is
+        neither (its bound is not known here)."""
+        from datagen.config import from_mapping
+        from datagen.errors import InputError
+        from datagen.sim.fabrics import FABRICS, Fabric
 
         garments = g.get("garments")
         if not isinstance(garments, h5py.Group):
             return None
-        fabrics = []
+        names, stored = [], {}
         for name in sorted(garments):
             fabric = str(_attr(garments[name], "fabric"))
-            if fabric not in FABRICS:
-                self.error(f"garments/{name}: fabric {fabric!r} is not a built-in fabric; "
-                           "strain not checked against it", "warning")
+            text = _attr(garments[name], "fabric_parameters")
+            where = f"garments/{name}/@fabric_parameters"
+            if text is not None:
+                try:
+                    values = json.loads(text)
+                    if not isinstance(values, dict):
+                        raise InputError(None, where, "a JSON mapping", type(values).__name__)
+                    stored[fabric] = from_mapping(Fabric, values, None, where)
+                except InputError as exc:
+                    self.error(str(exc))
+                    return None
+                except ValueError as exc:
+                    self.error(f"{where}: expected JSON, got {exc}")
+                    return None
+                if stored[fabric].name != fabric:
+                    self.error(f"{where}: the parameters of {stored[fabric].name!r}, expected "
+                               f"those of the garment's fabric {fabric!r}")
+                    return None
+                if fabric in FABRICS and stored[fabric] != FABRICS[fabric]:
+                    self.error(f"{where}: {fabric!r} was simulated with other values than this "
+                               "datagen's built-in; its stored bound is used", "warning")
+            elif fabric not in FABRICS:
+                self.error(f"garments/{name}: fabric {fabric!r} is not a built-in fabric and "
+                           "the shard does not store its parameters; strain not checked "
+                           "against it", "warning")
                 return None
-            fabrics.append(fabric)
-        return qa_bounds.strain_limit(fabrics)
+            names.append(fabric)
+        return qa_bounds.strain_limit(names, stored)
 
     # -- a rejected sequence -------------------------------------------------------------------
     def rejected(self, g: h5py.Group) -> None:

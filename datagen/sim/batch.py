@@ -220,6 +220,7 @@ def _split(joint: SimResult, qa: dict, scene: BatchScene, k: int, shift: np.ndar
     }
     report = dict(joint.report)
     report["vertices"] = int(sum(len(g.vertices) for g in scene.garments))
+    report["fabrics"] = {g.fabric: joint.report["fabrics"][g.fabric] for g in scene.garments}
     report["batch"] = {"scenes": n, "index": k, "alone": False,
                        "batch_vertices": joint.report["vertices"]}
     return SimResult(garment_names=names, vertices=vertices, qa=qa, report=report)

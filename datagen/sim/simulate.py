@@ -10,7 +10,7 @@ a frame that still fails rejects the sequence with the reason instead of writing
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -692,6 +692,9 @@ class _Simulation:
             "frame_substeps_max": max(self.frame_substeps, default=self.substeps),
             # Elements the model floored (a user's template with degenerate triangles).
             "degenerate_elements": {k: v for k, v in self.model.degenerate.items() if v},
+            # Each fabric's values as simulated: a shard names its fabrics, and a user's fabric
+            # (or a built-in of another datagen version) is known only by these.
+            "fabrics": {f.name: asdict(f) for f in self.fabrics},
         }
         return SimResult(
             garment_names=[g.name for g in self.garments],
