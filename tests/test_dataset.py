@@ -136,6 +136,20 @@ def test_bad_recipes_fail_before_any_work(tmp_path, patch, field):
     assert not list(out.glob("shard-*"))
 
 
+def test_a_scheduler_address_that_is_not_one_is_named_not_a_traceback(tmp_path):
+    """`--scheduler` that Dask cannot use (here not an address; an unreachable one takes the
+    same path after Dask's 30 s connect timeout) ended in a raw ValueError or OSError
+    traceback; it is an input error naming the option, and no shard is started."""
+    r = run_cli("dataset", "--pipeline", tiny_recipe(tmp_path, n=2), "--out", tmp_path / "out",
+                "--scheduler", "nonsense", "--no-progress", timeout=300)
+    assert r.returncode == 2, r.stderr  # the CLI's exit status for bad input
+    assert ("error: field '--scheduler': expected the address of a running Dask scheduler, "
+            "tcp://host:port (missing port number in address 'nonsense'), got 'nonsense'"
+            in r.stderr), r.stderr
+    assert "Traceback" not in r.stderr
+    assert not list((tmp_path / "out").glob("shard-*"))
+
+
 def test_recipe_with_a_clip_too_short_fails_before_any_work(tmp_path, repo_dir):
     """CMU 02_03 lasts 1.4 s: a recipe asking for 90 frames at 30 fps names it at the start,
     rather than rejecting, one by one, the sequences that happen to draw it."""

@@ -367,7 +367,12 @@ def _run_processes(workers: int, recipe_path: str, chunks: list[list[int]], fini
 def _run_dask(address: str, recipe_path: str, chunks: list[list[int]], finish) -> None:
     from distributed import Client, as_completed
 
-    with Client(address) as client:
+    try:
+        client = Client(address)
+    except (OSError, ValueError) as exc:  # unreachable, or not an address: not a traceback
+        raise InputError(None, "--scheduler", f"the address of a running Dask scheduler, "
+                         f"tcp://host:port ({exc})", address) from None
+    with client:
         futures = [client.submit(compute_sequences, recipe_path, c, pure=False) for c in chunks]
         for fut in as_completed(futures):
             for record in fut.result():
