@@ -1427,6 +1427,14 @@ def test_an_effects_request_changes_the_scene_rules_by_name():
     with pytest.raises(InputError, match="only in a scene with a body"):
         resolve_effects("auto,+body_collision",
                         SceneContent(False, 1, ("skirt",), ((0.0, 0.0),), False, False, False, 0.0))
+    # Friction acts in body contact: removing body_collision from a base that has friction
+    # names the request that drops both; a plain list says only what is missing.
+    with pytest.raises(InputError, match=r"friction together with body_collision "
+                                         r"\(auto,-body_collision,-friction drops both\)"):
+        resolve_effects("auto,-body_collision", skirt)
+    assert not resolve_effects("auto,-body_collision,-friction", skirt).body_collision
+    with pytest.raises(InputError, match=r"with body_collision, got 'friction'"):
+        resolve_effects("gravity,friction", skirt)
 
 
 def test_simulate_rejects_a_bad_effects_request_before_any_work(tmp_path, monkeypatch):

@@ -127,7 +127,11 @@ def resolve_effects(request: str | tuple[str, ...] | list[str], scene: SceneCont
             None, "effects", "body_collision only in a scene with a body", "body_collision"
         )
     if "friction" in chosen and "body_collision" not in chosen:
-        raise InputError(None, "effects", "friction together with body_collision", "friction")
+        # Friction acts in body contact: without it there is nothing to rub. Name the fix for a
+        # request that removed body_collision from a base which has friction.
+        hint = f" ({base},-body_collision,-friction drops both)" if base else ""
+        raise InputError(None, "effects", f"friction together with body_collision{hint}",
+                         "friction")
     return Effects(**{name: name in chosen for name in EFFECT_NAMES})
 
 
