@@ -418,47 +418,44 @@ def test_fabric_table_in_docs_is_current(repo_dir):
 
 
 def test_user_fabrics_from_yaml(tmp_path):
-    from datagen.errors import InputError
     from datagen.sim.fabrics import load_fabrics
 
     good = tmp_path / "f.yaml"
     good.write_text("fabrics:\n  jersey:\n    base: cotton\n    stretch: 120.0\n")
     jersey = load_fabrics(good)["jersey"]
     assert jersey.stretch == 120.0 and jersey.density == FABRICS["cotton"].density
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("fabrics:\n  x:\n    base: cotton\n    strech: 1.0\n")
-    with pytest.raises(InputError, match="bad.yaml.*fabrics.x.strech.*known keys.*got 'strech'"):
-        load_fabrics(bad)
-    neg = tmp_path / "neg.yaml"
-    neg.write_text("fabrics:\n  x:\n    base: cotton\n    density: -1.0\n")
-    with pytest.raises(InputError, match="fabrics.x.density"):
-        load_fabrics(neg)
-    # An inextensible bound no solver can meet (a t-shirt: 73 s a frame, over the bound still).
-    rigid = tmp_path / "rigid.yaml"
-    rigid.write_text("fabrics:\n  x:\n    base: cotton\n    max_strain: 0.0\n")
-    with pytest.raises(InputError, match=r"fabrics.x.max_strain.*\[0.001, 10\], got 0.0"):
-        load_fabrics(rigid)
-    # Fabrics one level too high (no 'fabrics:' key) name the stray key and what was expected.
-    flat = tmp_path / "flat.yaml"
-    flat.write_text("jersey:\n  base: cotton\n")
-    with pytest.raises(InputError, match="flat.yaml: field 'jersey': expected only the "
-                                         "top-level key 'fabrics'"):
-        load_fabrics(flat)
-    # A user fabric may not take a built-in's name: a shard records the fabric by name.
-    shadow = tmp_path / "shadow.yaml"
-    shadow.write_text("fabrics:\n  cotton:\n    base: cotton\n    stretch: 10.0\n")
-    with pytest.raises(InputError, match=r"shadow.yaml: field 'fabrics.cotton': expected a name "
-                                         r"other than the built-in fabrics.*my_cotton"):
-        load_fabrics(shadow)
-    # NaN would pass the range checks and blow up frames later; exponents without a dot are
-    # numbers (YAML 1.2), not the strings PyYAML's YAML 1.1 makes of them.
-    nan = tmp_path / "nan.yaml"
-    nan.write_text("fabrics:\n  x:\n    base: cotton\n    stretch: .nan\n")
-    with pytest.raises(InputError, match=r"fabrics.x.stretch': expected a finite number, got nan"):
-        load_fabrics(nan)
+    # Exponents without a dot are numbers (YAML 1.2), not the strings YAML 1.1 makes of them.
     stiff = tmp_path / "stiff.yaml"
     stiff.write_text("fabrics:\n  x:\n    base: cotton\n    stretch: 1e4\n")
     assert load_fabrics(stiff)["x"].stretch == 1e4
+
+
+@pytest.mark.parametrize("text, match", [
+    ("fabrics:\n  x:\n    base: cotton\n    strech: 1.0\n",
+     "bad.yaml.*fabrics.x.strech.*known keys.*got 'strech'"),
+    ("fabrics:\n  x:\n    base: cotton\n    density: -1.0\n", "fabrics.x.density"),
+    # An inextensible bound no solver can meet (a t-shirt: 73 s a frame, over the bound still).
+    ("fabrics:\n  x:\n    base: cotton\n    max_strain: 0.0\n",
+     r"fabrics.x.max_strain.*\[0.001, 10\], got 0.0"),
+    # Fabrics one level too high (no 'fabrics:' key) name the stray key and what was expected.
+    ("jersey:\n  base: cotton\n",
+     "bad.yaml: field 'jersey': expected only the top-level key 'fabrics'"),
+    # A user fabric may not take a built-in's name: a shard records the fabric by name.
+    ("fabrics:\n  cotton:\n    base: cotton\n    stretch: 10.0\n",
+     r"bad.yaml: field 'fabrics.cotton': expected a name other than the built-in fabrics"
+     r".*my_cotton"),
+    # NaN would pass the range checks and blow the scene up frames later.
+    ("fabrics:\n  x:\n    base: cotton\n    stretch: .nan\n",
+     r"fabrics.x.stretch': expected a finite number, got nan"),
+])
+def test_bad_user_fabrics_are_refused_by_file_and_field(tmp_path, text, match):
+    from datagen.errors import InputError
+    from datagen.sim.fabrics import load_fabrics
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    with pytest.raises(InputError, match=match):
+        load_fabrics(bad)
 
 
 def _explicit_hanging_sheet(substeps: int):
