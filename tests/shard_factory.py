@@ -7,7 +7,7 @@ is written through the real ShardWriter + write_record, so the files are what a 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import h5py
@@ -16,6 +16,7 @@ import numpy as np
 from datagen.body.parts import PART_NAMES
 from datagen.io.shard import ShardWriter, write_record
 from datagen.pipeline.stages import SequenceRecord
+from datagen.sim.fabrics import FABRICS
 from datagen.skinning import apply_linear_skinning, apply_sparse_offsets
 from datagen.spec import GarmentSpec, MotionSpec, OutfitSpec, SceneSpec
 from datagen.types import (
@@ -167,7 +168,8 @@ def make_record(index: int, frames: int = 10, lead_in: int = 3,
     }
     report = {"solver": "xpbd", "quality": "default", "substeps": 8, "iterations": 4,
               "effects": ["body_collision", "gravity"], "wall_time_s": 1.5, "retries": 0,
-              "frames": frames, "vertices": sum(len(g.vertices) for g in outfit)}
+              "frames": frames, "vertices": sum(len(g.vertices) for g in outfit),
+              "fabrics": {g.fabric: asdict(FABRICS[g.fabric]) for g in outfit}}
     sim = SimResult(garment_names=list(garments), vertices=sim_vertices, qa=qa, report=report)
     spec = SceneSpec(
         dataset_seed=seed, sequence_index=index, sequence_id=f"{seed}-{index:06d}", split=split,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pickle
 import sys
+from dataclasses import asdict
 from pathlib import Path
 
 import h5py
@@ -22,6 +23,7 @@ from datagen.io.storage import (  # noqa: E402
     position_storage,
     quantization_error,
 )
+from datagen.sim.fabrics import FABRICS  # noqa: E402
 
 # Decoding int16 * step + pelvis in float64 and rounding to float32 adds float32 rounding of
 # metre-sized values (~6e-8) to the half step.
@@ -82,6 +84,7 @@ def test_reader_round_trip(dataset):
                 np.testing.assert_array_equal(got["rest_vertices"], g.rest.astype(np.float32))
                 np.testing.assert_array_equal(got["uv"], g.uv.astype(np.float32))
                 assert got["type"] == g.meta["variant"] and got["fabric"] == g.fabric
+                assert got["fabric_parameters"] == asdict(FABRICS[g.fabric])
                 assert tuple(got["tightness"]) == g.tightness and got["layer"] == g.layer
                 assert got["elastic"] == list(g.elastic)
             qa = reader.qa(sid)
@@ -151,6 +154,7 @@ def test_dataset_frame_mode(lossless):
     np.testing.assert_allclose(item["tightness"].numpy(), [0.1, -0.2], rtol=1e-6)
     assert item["fabrics"] == ["cotton"] and item["garment_types"] == ["tshirt"]
     assert item["fabric_onehot"].tolist() == [[0.0, 0.0, 0.0, 1.0]]
+    assert item["fabric_parameters"] == [asdict(FABRICS["cotton"])]
 
     two = ds[0]  # 7-000000: lower (layer 0, denim) then upper (layer 1, cotton)
     assert two["garment_names"] == ["lower", "upper"]
@@ -160,6 +164,21 @@ def test_dataset_frame_mode(lossless):
     assert int(faces[:420].max()) < 240 <= int(faces[420:].min())
     assert two["fabric_onehot"][0, FABRIC_ORDER.index("denim")] == 1
     assert two["garment_template"].shape == (480, 3)
+
+
+def test_a_shard_without_stored_fabric_values_reads_them_as_none(tmp_path):
+    """Shards written before the fabrics' values were stored (@fabric_parameters) still read:
+    the values are None, the fabric's name is there."""
+    from datagen.io.reader import GarmentDataset
+
+    synth = sf.make_record(0)
+    del synth.record.sim.report["fabrics"]
+    path = sf.write_shard(tmp_path / "old.h5", [synth.record])
+    with DatasetReader(path) as reader:
+        garments = reader.garments("7-000000")
+    assert {g["fabric"] for g in garments.values()} == {"cotton", "denim"}
+    assert all(g["fabric_parameters"] is None for g in garments.values())
+    assert GarmentDataset(path)[0]["fabric_parameters"] == [None, None]
 
 
 def test_dataset_clip_and_sequence_modes(lossless):

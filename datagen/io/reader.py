@@ -16,6 +16,7 @@ Item layout of `GarmentDataset` (T = frames in the item: 1 is squeezed away in `
 | `garment_face_offsets` | (G + 1,) int64: the same for faces |
 | `garment_names`, `garment_types`, `fabrics` | list[str] of length G |
 | `fabric_onehot` | (G, 4) float32 in FABRIC_ORDER (all zeros for other fabrics) |
+| `fabric_parameters` | list of G dicts: each fabric's values as simulated (docs/fabrics.md) |
 | `tightness` | (2,) float32, the outfit's tightness (gamma) |
 | `pose` | (72,) / (T, 72) float32, canonical axis-angle pose |
 | `trans` | (3,) / (T, 3) float32, pelvis position |
@@ -28,6 +29,8 @@ Item layout of `GarmentDataset` (T = frames in the item: 1 is squeezed away in `
 Garments are ordered innermost first (by `layer`, then name), the order DeePSD-style models
 that treat an outfit as one mesh expect. Items of different sequences differ in vertex counts,
 so batch them with `collate_items` (a list) unless every item shares one outfit.
+`fabric_parameters` give physics-based losses (PBNS-style) the density, stiffnesses and bending
+the data was simulated with; an entry is None in a shard written before they were stored.
 """
 
 from __future__ import annotations
@@ -56,6 +59,13 @@ def fabric_onehot(fabric: str) -> np.ndarray:
     if fabric in FABRIC_ORDER:
         out[FABRIC_ORDER.index(fabric)] = 1.0
     return out
+
+
+def fabric_parameters(garment: h5py.Group) -> dict | None:
+    """The garment's fabric values as simulated (@fabric_parameters); None in a shard written
+    before they were stored."""
+    text = garment.attrs.get("fabric_parameters")
+    return None if text is None else json.loads(_text(text))
 
 
 def shard_paths(path: str | Path) -> list[Path]:
@@ -210,6 +220,7 @@ class DatasetReader:
                 "type": _text(g.attrs["type"]),
                 "category": _text(g.attrs.get("category", g.attrs["type"])),
                 "fabric": _text(g.attrs["fabric"]),
+                "fabric_parameters": fabric_parameters(g),
                 "tightness": np.asarray(g.attrs["tightness"], dtype=np.float64),
                 "layer": int(g.attrs["layer"]),
                 "elastic": list(_text(g.attrs.get("elastic", []))),
@@ -390,6 +401,7 @@ class _GarmentData:
             "garment_types": [_text(root[n].attrs["type"]) for n in names],
             "fabrics": fabrics,
             "fabric_onehot": torch.from_numpy(np.stack([fabric_onehot(f) for f in fabrics])),
+            "fabric_parameters": [fabric_parameters(root[n]) for n in names],
             "tightness": torch.from_numpy(tightness),
             "shape": torch.from_numpy(b["shape"][()].astype(np.float32)),
             "gender": _text(b.attrs["gender"]),
