@@ -130,6 +130,10 @@ def body_model_from_options(name: str, smpl_model: str | None):
         from datagen.body.smpl_model import SMPLBody
 
         return SMPLBody({"neutral": smpl_model})
+    if smpl_model:
+        # Anny would run and the user's model file go unread without a word.
+        raise click.UsageError(f"--smpl-model is read with --body-model smpl only (the body "
+                               f"model is {name}); add --body-model smpl")
     from datagen.body.anny_model import default_body_model
 
     return default_body_model()

@@ -169,3 +169,14 @@ def test_a_wind_that_is_not_three_finite_numbers_is_refused(tmp_path, wind):
     assert r.returncode == 2
     assert "Invalid value for --wind" in r.stderr and repr(wind) in r.stderr, r.stderr
     assert not out.exists()
+
+
+def test_an_smpl_model_file_without_the_smpl_body_model_is_refused(tmp_path):
+    """`--smpl-model FILE` alone ran Anny and left the user's model file unread, silently."""
+    model = tmp_path / "model.npz"
+    np.savez(model, v_template=np.zeros((4, 3)))
+    out = tmp_path / "out.h5"
+    r = run("body", "--smpl-model", model, "--frames", 1, "--out", out)
+    assert r.returncode == 2
+    assert "--smpl-model is read with --body-model smpl only (the body model is anny)" in r.stderr
+    assert "Traceback" not in r.stderr and not out.exists()
