@@ -131,7 +131,10 @@ def _convert(tp: Any, value: Any, source: str | Path | None, path: str) -> Any:
         # NaN passes every range check (each comparison is false) and infinity every open
         # one; neither is a setting, and either would surface frames later as a blow-up.
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            number = float(value) if isinstance(value, float) or abs(value) < 2**1023 else math.inf
+            try:
+                number = float(value)
+            except OverflowError:  # an int past float's range
+                number = math.inf
             if math.isfinite(number):
                 return number
             raise InputError(source, path, "a finite number", value)

@@ -441,6 +441,7 @@ class _SequenceCheck:
         neither (its bound is not known here)."""
         from datagen.config import from_mapping
         from datagen.errors import InputError
+        from datagen.io.reader import fabric_parameters
         from datagen.sim.fabrics import FABRICS, Fabric
 
         garments = g.get("garments")
@@ -449,32 +450,34 @@ class _SequenceCheck:
         names, stored = [], {}
         for name in sorted(garments):
             fabric = str(_attr(garments[name], "fabric"))
-            text = _attr(garments[name], "fabric_parameters")
             where = f"garments/{name}/@fabric_parameters"
-            if text is not None:
-                try:
-                    values = json.loads(text)
-                    if not isinstance(values, dict):
-                        raise InputError(None, where, "a JSON mapping", type(values).__name__)
-                    stored[fabric] = from_mapping(Fabric, values, None, where)
-                except InputError as exc:
-                    self.error(str(exc))
-                    return None
-                except ValueError as exc:
-                    self.error(f"{where}: expected JSON, got {exc}")
-                    return None
-                if stored[fabric].name != fabric:
-                    self.error(f"{where}: the parameters of {stored[fabric].name!r}, expected "
-                               f"those of the garment's fabric {fabric!r}")
-                    return None
-                if fabric in FABRICS and stored[fabric] != FABRICS[fabric]:
-                    self.error(f"{where}: {fabric!r} was simulated with other values than this "
-                               "datagen's built-in; its stored bound is used", "warning")
-            elif fabric not in FABRICS:
-                self.error(f"garments/{name}: fabric {fabric!r} is not a built-in fabric and "
-                           "the shard does not store its parameters; strain not checked "
-                           "against it", "warning")
+            try:
+                values = fabric_parameters(garments[name])
+            except ValueError as exc:
+                self.error(f"{where}: expected JSON, got {exc}")
                 return None
+            if values is None:  # a shard written before the values were stored
+                if fabric not in FABRICS:
+                    self.error(f"garments/{name}: fabric {fabric!r} is not a built-in fabric "
+                               "and the shard does not store its parameters; strain not "
+                               "checked against it", "warning")
+                    return None
+                names.append(fabric)
+                continue
+            try:
+                if not isinstance(values, dict):
+                    raise InputError(None, where, "a JSON mapping", type(values).__name__)
+                stored[fabric] = from_mapping(Fabric, values, None, where)
+            except InputError as exc:
+                self.error(str(exc))
+                return None
+            if stored[fabric].name != fabric:
+                self.error(f"{where}: the parameters of {stored[fabric].name!r}, expected "
+                           f"those of the garment's fabric {fabric!r}")
+                return None
+            if fabric in FABRICS and stored[fabric] != FABRICS[fabric]:
+                self.error(f"{where}: {fabric!r} was simulated with other values than this "
+                           "datagen's built-in; its stored bound is used", "warning")
             names.append(fabric)
         return qa_bounds.strain_limit(names, stored)
 
