@@ -62,6 +62,45 @@ def _study_tube():
     return build_cloth_model([(g, FABRICS[g.fabric]) for g in scene.garments])
 
 
+class _ShakenTubeStep:
+    """One step (5 a frame) of the studies' coarse denim tube hanging from its pins, from a
+    shaken state, no collider: `step(solver)` gives the positions after it, `newton` the
+    implicit solver's converged backward Euler step and `moved` how far that moved a vertex."""
+
+    def __init__(self) -> None:
+        import numpy as np
+
+        from datagen.sim.effects import Effects
+        from datagen.sim.implicit import ImplicitSolver
+        from datagen.sim.solvers import SolverSettings
+
+        self.model = model = _study_tube()
+        rng = np.random.default_rng(5)
+        x0 = model.x0 + rng.normal(scale=0.002, size=model.x0.shape)
+        v0 = rng.normal(scale=0.05, size=model.x0.shape)
+        x0[model.pinned], v0[model.pinned] = model.x0[model.pinned], 0.0
+        self.x0, self.v0 = x0, v0
+        self.effects = Effects(pins=True)
+        self.newton = self.step(ImplicitSolver(model, self.effects, SolverSettings(
+            iterations=50, tolerance=1e-7, cg_tolerance=1e-7, cg_max_iterations=5000)))
+        self.moved = float(np.abs(self.newton - x0).max())
+
+    def step(self, solver):
+        import numpy as np
+
+        pinned = self.model.x0[self.model.pinned]
+        solver.set_state(self.x0, self.v0)
+        solver.set_pin_targets(pinned, pinned)
+        solver.substep(1.0 / 30.0 / 5, None, 0.0, 1.0)
+        return solver.get_state()[0].astype(np.float64)
+
+    def error(self, solver) -> float:
+        """How far `solver`'s step ends from Newton's (max over vertices, metres)."""
+        import numpy as np
+
+        return float(np.abs(self.step(solver) - self.newton).max())
+
+
 def test_the_bending_study_solves_its_block_exactly_and_consistently():
     """benchmarks/study_bend_block.py sets an exact bending block against the sweeps: after
     its solve every stencil's XPBD equation holds, (1 + gamma) B x + alpha~ lambda - gamma B xp
@@ -108,35 +147,17 @@ def test_the_prefactored_study_iterates_to_the_implicit_solvers_backward_euler_s
     fixed point must be the backward Euler step that the implicit solver's Newton iterations
     reach, or its errors would measure another model. One step of a coarse denim tube hanging
     from its pins, from a shaken state, no collider."""
-    import numpy as np
-
     from benchmarks.study_prefactored_implicit import PrefactoredImplicit
-    from datagen.sim.effects import Effects
-    from datagen.sim.implicit import ImplicitSolver
     from datagen.sim.solvers import SolverSettings
 
-    model = _study_tube()
-    rng = np.random.default_rng(5)
-    x0 = model.x0 + rng.normal(scale=0.002, size=model.x0.shape)
-    v0 = rng.normal(scale=0.05, size=model.x0.shape)
-    x0[model.pinned], v0[model.pinned] = model.x0[model.pinned], 0.0
-    h = 1.0 / 30.0 / 5
+    case = _ShakenTubeStep()
 
-    def one_step(solver):
-        solver.set_state(x0, v0)
-        solver.set_pin_targets(model.x0[model.pinned], model.x0[model.pinned])
-        solver.substep(h, None, 0.0, 1.0)
-        return solver.get_state()[0].astype(np.float64)
+    def prefactored(iterations):
+        return PrefactoredImplicit(case.model, case.effects, SolverSettings(iterations=iterations))
 
-    effects = Effects(pins=True)
-    newton = one_step(ImplicitSolver(model, effects, SolverSettings(
-        iterations=50, tolerance=1e-7, cg_tolerance=1e-7, cg_max_iterations=5000)))
-    many = one_step(PrefactoredImplicit(model, effects, SolverSettings(iterations=400)))
-    one = one_step(PrefactoredImplicit(model, effects, SolverSettings(iterations=1)))
-    moved = np.abs(newton - x0).max()
-    assert moved > 1e-3  # the step did move the cloth
-    assert np.abs(many - newton).max() < 1e-3 * moved
-    assert np.abs(one - newton).max() > 1e-2 * moved  # one iteration is inexact
+    assert case.moved > 1e-3  # the step did move the cloth
+    assert case.error(prefactored(400)) < 1e-3 * case.moved
+    assert case.error(prefactored(1)) > 1e-2 * case.moved  # one iteration is inexact
 
 
 def test_the_prefactored_studys_bdf2_falls_as_a_body_falls():
@@ -165,6 +186,29 @@ def test_the_prefactored_studys_bdf2_falls_as_a_body_falls():
     assert abs(drop[False] - exact) == pytest.approx(lag, rel=0.05)  # backward Euler's lag
     # BDF2 keeps only its backward Euler first step's offset (order h^2 g), which does not grow
     assert abs(drop[True] - exact) < 2.0 * h * h * 9.81 < 0.15 * lag
+
+
+def test_the_vbd_study_iterates_to_the_implicit_solvers_backward_euler_step():
+    """benchmarks/study_vbd.py's vertex blocks minimise the implicit solver's incremental
+    potential one vertex at a time: many sweeps must reach the step that Newton reaches (else
+    its errors would measure another model), a few must not, and Chebyshev acceleration must
+    come closer than plain sweeps of the same count. One step of a coarse denim tube hanging
+    from its pins, from a shaken state, no collider."""
+    from benchmarks.study_vbd import VBDSolver
+    from datagen.sim.solvers import SolverSettings
+
+    case = _ShakenTubeStep()
+
+    def vbd(iterations, rho=0.0):
+        solver = VBDSolver(case.model, case.effects, SolverSettings(iterations=iterations))
+        solver.rho = rho
+        return solver
+
+    assert case.moved > 1e-3  # the step did move the cloth
+    assert case.error(vbd(1000)) < 1e-3 * case.moved
+    few = case.error(vbd(8))
+    assert few > 1e-2 * case.moved  # eight sweeps are inexact (about 30 % of the move)
+    assert case.error(vbd(8, rho=0.9)) < 0.5 * few  # Chebyshev: about 10 %
 
 
 def test_blender_at_one_thread_is_given_one_openmp_thread_too(monkeypatch):
