@@ -403,3 +403,28 @@ def test_the_body_frame_study_splits_what_it_times_and_leaves_the_simulator_as_i
     assert row["solver_ms"] > 0 and row["collider_ms"] > 0 and inside <= row["loop_ms"]
     assert row["loop_ms"] + row["qa_ms"] < row["ms_frame"]
     assert row["bound"] == 0.25 and 0.0 < row["strain_p999"] < 10.0
+
+
+def test_the_dataset_projection_gives_the_mean_with_its_t_interval_and_the_escalations():
+    """bench_dataset projects the CLOTH3D recipe's cost from a sample of its sequences: the mean
+    core-seconds times the sequence count, with the mean's 95 % interval (Student's t). Three
+    runs of 10, 20 and 30 s: mean 20, standard deviation 10, t(0.975, 2) = 4.303, so the half
+    width is 4.303 * 10 / sqrt(3) = 24.8 s; over 3600 sequences, 20 core-hours (-5 to 45). The
+    escalated one's 30 s are half the sample's 60."""
+    from benchmarks.bench_dataset import projection_lines
+
+    def run(index, seconds, escalated=False, status="ok"):
+        return {"index": index, "seconds": seconds, "frames": 300, "status": status,
+                "escalated": escalated, "retries": int(escalated), "garments": 1 + index % 2,
+                "vertices": 5000 * (1 + index % 2),
+                "note": "ok" if not escalated else "ok; simulated again at reference"}
+
+    text = "\n".join(projection_lines({"sequences": 3600, "runs": [
+        run(0, 10.0), run(1, 20.0), run(2, 30.0, escalated=True)]}))
+    assert "mean 20 (95 % interval -5-45)" in text
+    assert "**20 core-hours** (1 core-days; 95 % interval -5-45)" in text
+    assert "| 1 of 3 (50 % of the sample's core-seconds) |" in text
+    assert "| 1 in 1 sequences |" in text
+    assert ("2 with 1 garment, 1 with 2 garments (5,000-10,000 garment vertices); 300 frames |"
+            in text)
+    assert "- sequence 2: ok, 30 s (ok; simulated again at reference)" in text
