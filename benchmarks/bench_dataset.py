@@ -73,9 +73,9 @@ def _timed_sequence(recipe: str, index: int) -> dict:
 def _warm_worker(recipe: str) -> None:
     """Build a worker's body model and Taichi once, before its sequences are timed: a
     dataset run pays that once per worker, not once per sequence."""
-    from datagen.pipeline.dataset import _worker_state
+    from datagen.pipeline.dataset import worker_state
 
-    _worker_state(recipe)
+    worker_state(recipe)
 
 
 def cloth3d_sample(k: int, workers: int) -> dict:

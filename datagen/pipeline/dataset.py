@@ -36,8 +36,9 @@ def shard_name(k: int) -> str:
 _WORKER: dict = {}
 
 
-def _worker_state(recipe_path: str) -> dict:
-    """Per-process state: the recipe and the body model, built once per worker."""
+def worker_state(recipe_path: str) -> dict:
+    """Per-process state: the recipe and the body model, built once per worker (and Taichi on
+    one thread). A pool's initializer may call it so that no sequence pays for it."""
     state = _WORKER.get(recipe_path)
     if state is None:
         from datagen.body.anny_model import default_body_model
@@ -69,7 +70,7 @@ def compute_sequence(recipe_path: str, index: int):
     from datagen.pipeline.stages import run_sequence
     from datagen.sampling import sample_scene
 
-    state = _worker_state(recipe_path)
+    state = worker_state(recipe_path)
     loaded: LoadedRecipe = state["loaded"]
     record = run_sequence(sample_scene(loaded, index), state["model"], loaded.recipe.body,
                           loaded.base_dir, _templates_dir(loaded))
@@ -84,7 +85,7 @@ def compute_sequences(recipe_path: str, indices: list[int]) -> list:
     from datagen.pipeline.batched import run_sequences_batched
     from datagen.sampling import sample_scene
 
-    state = _worker_state(recipe_path)
+    state = worker_state(recipe_path)
     loaded: LoadedRecipe = state["loaded"]
     records = run_sequences_batched([sample_scene(loaded, i) for i in indices], state["model"],
                                     loaded.recipe.body, loaded.base_dir, _templates_dir(loaded))
