@@ -932,31 +932,19 @@ def collide_body(
     contact_v: V3,
     h: REAL,
     use_friction: ti.template(),
+    interpolated: ti.template(),
 ):
+    """collide_one for every cloth vertex. `interpolated`: b0, b1 and n0 are the body at the
+    substep's start and end and its normals at the end (interpolate_body), and s0, s1 are not
+    read: the body is taken at the literal fractions 0 and 1, as xpbd_frame takes it, so that
+    the per-effect path compiles the fused kernel's arithmetic."""
     for i in x:
-        collide_one(
-            i,
-            x,
-            xp,
-            w,
-            tri,
-            faces,
-            fadj,
-            b0,
-            b1,
-            n0,
-            n1,
-            s0,
-            s1,
-            thickness,
-            friction,
-            recover,
-            release,
-            contact_n,
-            contact_v,
-            h,
-            use_friction,
-        )
+        if ti.static(interpolated):
+            collide_one(i, x, xp, w, tri, faces, fadj, b0, b1, n0, n0, 0.0, 1.0, thickness,
+                        friction, recover, release, contact_n, contact_v, h, use_friction)
+        else:
+            collide_one(i, x, xp, w, tri, faces, fadj, b0, b1, n0, n1, s0, s1, thickness,
+                        friction, recover, release, contact_n, contact_v, h, use_friction)
 
 
 # -- garment-garment collision (layered outfits) -----------------------------------------------
@@ -1584,6 +1572,20 @@ def grid_nearest(
         )
 
 
+@ti.kernel
+def nearest_untracked(x: V3, w: F1, bs1: V3, faces: I3, origin: vec3, inv_cell: REAL,
+                      dims: ti.math.ivec3, starts: I1, items: I1, cell: REAL, tri: I1,
+                      guard: V8, odo0: REAL, travel: REAL, grid_tag: REAL, s1: REAL,
+                      shift: vec3, tbox: V8):
+    """A substep's search of the untracked vertices as xpbd_frame runs it: the body at the
+    substep's end from interpolate_body, the odometer odo0 + s1 travel computed here (computed
+    in Python it rounded differently, and a guard's test could come out the other way)."""
+    for i in x:
+        nearest_one(i, x, w, bs1, bs1, faces, origin, inv_cell, dims, starts, items, 1.0, cell,
+                    tri, SEARCH_UNTRACKED, guard, odo0 + s1 * travel, grid_tag, s1, shift,
+                    tbox)
+
+
 # -- one launch per frame (CPU) ----------------------------------------------------------------
 # Scalars of the fused frame kernel, packed into two small arrays: a kernel takes at most 64
 # argument elements on the x64 backend, and the fused kernel needs every array of the solver.
@@ -1615,19 +1617,41 @@ def limit_after_contact_listed(
     return n_moved
 
 
+@ti.func
+def interpolate_body_one(j: ti.i32, b0: V3, b1: V3, n0: V3, n1: V3, s0: REAL, s1: REAL,
+                         bs0: V3, bs1: V3, ns1: V3):
+    """Body vertex j at a substep's start and end, and its normal at the end."""
+    bs0[j] = lerp3(b0[j], b1[j], s0)
+    bs1[j] = lerp3(b0[j], b1[j], s1)
+    ns1[j] = lerp3(n0[j], n1[j], s1)
+
+
+@ti.kernel
+def interpolate_body(b0: V3, b1: V3, n0: V3, n1: V3, used: I1, s0: REAL, s1: REAL, bs0: V3,
+                     bs1: V3, ns1: V3, serialize: ti.template()):
+    """interpolate_body_one at the colliding faces' vertices, as xpbd_frame does each substep
+    (collide_body and collide_listed then take them with `interpolated`)."""
+    ti.loop_config(serialize=serialize)
+    for u in range(used.shape[0]):
+        interpolate_body_one(used[u], b0, b1, n0, n1, s0, s1, bs0, bs1, ns1)
+
+
 @ti.kernel
 def collide_listed(
     x: V3, xp: V3, w: F1, tri: I1, faces: I3, fadj: I3, b0: V3, b1: V3, n0: V3, n1: V3,
     s0: REAL, s1: REAL, thickness: F1, friction: F1, recover: REAL, release: REAL,
     contact_n: V3, contact_v: V3, h: REAL, lists: I1, n_moved: ti.i32,
-    use_collision: ti.template(),
+    use_collision: ti.template(), interpolated: ti.template(),
 ):
     """Contact without friction for the vertices limit_after_contact_active moved, clearing
-    their flags."""
+    their flags. `interpolated` as in collide_body."""
     ti.loop_config(serialize=True)
     for q in range(n_moved):
         i = moved_by_limit(q, x.shape[0], lists)
-        if ti.static(use_collision):
+        if ti.static(use_collision and interpolated):
+            collide_one(i, x, xp, w, tri, faces, fadj, b0, b1, n0, n0, 0.0, 1.0, thickness,
+                        friction, recover, release, contact_n, contact_v, h, False)
+        elif ti.static(use_collision):
             collide_one(i, x, xp, w, tri, faces, fadj, b0, b1, n0, n1, s0, s1, thickness,
                         friction, recover, release, contact_n, contact_v, h, False)
 
@@ -1798,10 +1822,7 @@ def xpbd_frame(
             # The body at this substep's start and end, once, instead of per cloth vertex, at
             # the colliding faces' vertices (a walking body's 9,313 of 13,348).
             for u in range(body_used.shape[0]):
-                j = body_used[u]
-                bs0[j] = lerp3(b0[j], b1[j], s0)
-                bs1[j] = lerp3(b0[j], b1[j], s1)
-                ns1[j] = lerp3(n0[j], n1[j], s1)
+                interpolate_body_one(body_used[u], b0, b1, n0, n1, s0, s1, bs0, bs1, ns1)
             for i in range(n):
                 contact_n[i] = vec3(0.0)
                 contact_v[i] = vec3(0.0)

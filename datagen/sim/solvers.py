@@ -521,6 +521,7 @@ class ClothSolver:
             self.contact_v,
             h,
             friction,
+            False,
         )
 
     def search(self, collider, s: float) -> None:
@@ -621,6 +622,27 @@ class XPBDSolver(ClothSolver):
         self.limit_worst = _nd(REAL, np.zeros(1, NP_REAL))
         self.limit_moved = _nd(ti.i32, np.zeros(self.n, np.int32))
 
+    def _collide(self, collider, s0: float, s1: float, h: float) -> None:
+        """ClothSolver's contact; on the serial path computed as the fused frame kernel
+        computes it (the body interpolated once per substep, taken at the fractions 0 and 1,
+        the odometer summed in the kernel), so that a profiled frame is an unprofiled one to
+        the last bit."""
+        if not self.gauss_seidel:
+            return super()._collide(collider, s0, s1, h)
+        self._run("body_collision", K.clear_contacts, self.contact_n, self.contact_v)
+        if collider is None or not self.effects.body_collision:
+            return
+        c = collider
+        self._run("body_collision", K.interpolate_body, c.b0, c.b1, c.n0, c.n1, c.used, s0, s1,
+                  c.bs0, c.bs1, c.ns1, True)
+        self._run("body_collision", K.nearest_untracked, self.x, self.w, c.bs1, c.faces,
+                  c.origin, c.inv_cell, c.dims, c.starts, c.items, c.cell, self.tri,
+                  self.guard, self.odo, c.max_speed, c.grid_tag, s1, VEC3(*c.shift_np), c.tbox)
+        self._run("body_collision", K.collide_body, self.x, self.xp, self.w, self.tri, c.faces,
+                  c.fadj, c.bs0, c.bs1, c.ns1, c.ns1, s0, s1, self.thickness, self.friction,
+                  self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n, self.contact_v,
+                  h, self.effects.friction, True)
+
     def _limit_after_contact(self, collider, s0: float, s1: float, h: float) -> None:
         """As ClothSolver's, with the sweeps after the first on the springs around what moved
         (kernels.limit_after_contact_active), and contact again on the vertices they moved. On
@@ -642,10 +664,13 @@ class XPBDSolver(ClothSolver):
         self.launches["strain_limit"] += 1
         self.costs["strain_limit"] += time.perf_counter() - t
         c = collider if body else self._placeholder_collider()
+        if body:  # the body at this substep, as the fused kernel takes it (see _collide)
+            self._run("body_collision", K.interpolate_body, c.b0, c.b1, c.n0, c.n1, c.used, s0,
+                      s1, c.bs0, c.bs1, c.ns1, True)
         self._run("body_collision", K.collide_listed, self.x, self.xp, self.w, self.tri,
-                  c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, s0, s1, self.thickness,
+                  c.faces, c.fadj, c.bs0, c.bs1, c.ns1, c.ns1, s0, s1, self.thickness,
                   self.friction, self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n,
-                  self.contact_v, h, self.limit_lists, n_moved, body)
+                  self.contact_v, h, self.limit_lists, n_moved, body, True)
 
     def _limit_after_contact_coloured(self, collider, s0: float, s1: float, h: float) -> None:
         """The strain limit after contact on a parallel backend: coloured sweeps, then contact
