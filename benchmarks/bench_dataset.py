@@ -70,14 +70,6 @@ def _timed_sequence(recipe: str, index: int) -> dict:
             "note": f"{record.reason or 'ok'}{escalation_note(record.sim)}"}
 
 
-def _warm_worker(recipe: str) -> None:
-    """Build a worker's body model and Taichi once, before its sequences are timed: a
-    dataset run pays that once per worker, not once per sequence."""
-    from datagen.pipeline.dataset import worker_state
-
-    worker_state(recipe)
-
-
 def cloth3d_sample(k: int, workers: int) -> dict:
     """Core-seconds per sequence of the CLOTH3D recipe, from its first k sequences, run as a
     dataset run runs them: one single-threaded process per core (two simulations at once do
@@ -85,12 +77,15 @@ def cloth3d_sample(k: int, workers: int) -> dict:
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
+    from datagen.pipeline.dataset import worker_state
     from datagen.recipe import load_recipe
 
     recipe = str(REPO / "pipelines" / "cloth3d.yaml")
     loaded = load_recipe(recipe)
     ctx = multiprocessing.get_context("spawn")  # no fork: Taichi and torch hold threads
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_warm_worker,
+    # Each worker builds its body model and Taichi before its sequences are timed: a dataset
+    # run pays that once per worker, not once per sequence.
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=worker_state,
                              initargs=(recipe,)) as pool:
         runs = []
         for run in pool.map(_timed_sequence, [recipe] * k, range(k)):

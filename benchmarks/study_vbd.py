@@ -199,12 +199,6 @@ class VBDSolver(ImplicitSolver):
         return self.xp, h
 
 
-def blender_error(row: dict) -> float:
-    """Blender's quality 5 error as bench_sim picks its settings against it (the mean over
-    its starts, where recorded)."""
-    return row.get("blender_err_mean_mm", row["blender_err_mm"])
-
-
 def use(rho: float) -> None:
     """Let `simulate` build the study's solver wherever it is asked for the implicit one."""
     def make(name, model, effects, settings):
@@ -259,7 +253,7 @@ def main() -> None:
             run = run_ours(short, "implicit", sub, it)
             errors[(sub, it, rho)] = 1000 * rms_distance(run.positions, ref, horizon)
             print(f"  {sub}x{it} rho {rho}: {errors[(sub, it, rho)]:.2f} mm", flush=True)
-        within = [v for v in VARIANTS if errors[v] <= blender_error(b)]
+        within = [v for v in VARIANTS if errors[v] <= b["blender_err_mean_mm"]]
         best = min(within, key=lambda v: (v[0] * v[1], v[0])) if within else None
         timed = build_scene(scene_name, fabric, resolution, frames=TIMED_FRAMES)
         x_sub, x_it = map(int, b["at_error"]["steps"].split("x"))
@@ -296,7 +290,7 @@ def report(rows: list[dict], peer: dict) -> None:
         at = r["blender"]["at_error"]
         cells = " | ".join(f"{r['errors'][v]:.1f}" for v in VARIANTS)
         print(f"| {r['scene']} | {r['fabric']} | {r['horizon']} | "
-              f"{blender_error(r['blender']):.2f} | {at['steps']} {at['err_mm']:.2f} | "
+              f"{r['blender']['blender_err_mean_mm']:.2f} | {at['steps']} {at['err_mm']:.2f} | "
               f"{cells} |")
     print("\n| scene | fabric | fewest sweeps within Blender's error | error mm | study s/sim-s "
           "| strain p99.9 | xpbd at Blender's error | xpbd s/sim-s | study / xpbd | "

@@ -491,8 +491,12 @@ class ClothSolver:
         self._run("body_collision", K.clear_contacts, self.contact_n, self.contact_v)
         if collider is None or not self.effects.body_collision:
             return
-        # Vertices that track no triangle look for one at every substep (cheap: they are far
-        # from the body, in empty cells), so fast limbs and falling cloth are caught in time.
+        self._search_and_collide(collider, s0, s1, h)
+
+    def _search_and_collide(self, collider, s0: float, s1: float, h: float) -> None:
+        """A substep's body contact. Vertices that track no triangle look for one at every
+        substep (cheap: they are far from the body, in empty cells), so fast limbs and falling
+        cloth are caught in time."""
         self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s1,
                   K.SEARCH_UNTRACKED, self.guard, self.odo + s1 * collider.max_speed)
         self._collide_body(collider, s0, s1, h, self.effects.friction)
@@ -622,16 +626,13 @@ class XPBDSolver(ClothSolver):
         self.limit_worst = _nd(REAL, np.zeros(1, NP_REAL))
         self.limit_moved = _nd(ti.i32, np.zeros(self.n, np.int32))
 
-    def _collide(self, collider, s0: float, s1: float, h: float) -> None:
-        """ClothSolver's contact; on the serial path computed as the fused frame kernel
-        computes it (the body interpolated once per substep, taken at the fractions 0 and 1,
-        the odometer summed in the kernel), so that a profiled frame is an unprofiled one to
-        the last bit."""
+    def _search_and_collide(self, collider, s0: float, s1: float, h: float) -> None:
+        """ClothSolver's; on the serial path computed as the fused frame kernel computes it
+        (the body interpolated once per substep, taken at the fractions 0 and 1, the odometer
+        summed in the kernel), so that a profiled frame is an unprofiled one to the last
+        bit."""
         if not self.gauss_seidel:
-            return super()._collide(collider, s0, s1, h)
-        self._run("body_collision", K.clear_contacts, self.contact_n, self.contact_v)
-        if collider is None or not self.effects.body_collision:
-            return
+            return super()._search_and_collide(collider, s0, s1, h)
         c = collider
         self._run("body_collision", K.interpolate_body, c.b0, c.b1, c.n0, c.n1, c.used, s0, s1,
                   c.bs0, c.bs1, c.ns1, True)
