@@ -201,7 +201,8 @@ OUTFIT_SNIPPET = """
 import json, resource, sys, time
 from datagen.study.run import run_ours
 from datagen.study.scenes import build_scene
-scene = build_scene("tshirt_walk", "cotton", frames=int(sys.argv[1]))
+# The collider knows the body's parts, as a dataset's does (the accuracy study's scene does not).
+scene = build_scene("tshirt_walk", "cotton", frames=int(sys.argv[1]), body_parts=True)
 out = {}
 for effects in ("auto", "all"):
     run = run_ours(scene, "xpbd", int(sys.argv[2]), int(sys.argv[3]), effects=effects)

@@ -172,8 +172,11 @@ def _joined(scenes: list[BatchScene], layout: BatchLayout):
         masks.append(np.asarray(track.face_mask, dtype=bool))
         n_body += track.vertices.shape[1]
     first = scenes[0].track
+    # Parts are kept where every scene has them: each scene's body is guarded as it is alone.
+    face_parts = [s.track.face_parts for s in scenes]
+    joined_parts = None if any(p is None for p in face_parts) else np.concatenate(face_parts)
     track = ColliderTrack(np.concatenate(verts, axis=1), np.concatenate(faces),
-                          np.concatenate(masks), first.fps, first.lead_in_frames)
+                          np.concatenate(masks), first.fps, first.lead_in_frames, joined_parts)
     return garments, track, parts
 
 

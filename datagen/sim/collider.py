@@ -54,8 +54,11 @@ class BodyCollider:
 
     def __init__(
         self, faces: np.ndarray, face_mask: np.ndarray, n_vertices: int, cell: float = GRID_CELL,
-        normals: bool = True,
+        normals: bool = True, face_parts: np.ndarray | None = None,
     ) -> None:
+        """`face_parts`: each face's body part (ints from 0), or None for a collider that is one
+        surface (a sphere, a garment under another). With parts, a cloth vertex is searched
+        again when a facing surface of another part may come near it (kernels.nearest_one)."""
         init_taichi()
         # A layer collider reads its normals from the cloth each substep: none per frame.
         self.normals = normals
@@ -96,6 +99,18 @@ class BodyCollider:
         self.ns1 = ti.ndarray(VEC3, n_vertices)
         self.relative_travel = np.zeros(n_vertices, NP_REAL)  # from the mean motion, per frame
         self.tbox = ti.ndarray(K.GUARD, len(self.faces_np))  # per triangle (K.grid_count)
+        boxes = np.zeros((len(self.faces_np), K.GUARD.n), NP_REAL)
+        if face_parts is None:
+            boxes[:, K.T_PART] = -1.0
+        else:
+            face_parts = np.asarray(face_parts)
+            if face_parts.shape != (len(self.faces_np),) or face_parts.min(initial=0) < 0:
+                raise ValueError(f"face_parts: expected one part index >= 0 per face "
+                                 f"({len(self.faces_np)}), got shape {face_parts.shape}")
+            # The search guards pack a distance below a cell after the part (K.OTHER_NONE).
+            assert cell < K.OTHER_NONE, cell
+            boxes[:, K.T_PART] = face_parts
+        self.tbox.from_numpy(boxes)
         self.shift_np = np.zeros(3)
         self._n_cells_alloc = 0
         self.counts = self.starts = self.items = None

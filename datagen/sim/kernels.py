@@ -13,9 +13,25 @@ vec3 = VEC3
 V3 = ti.types.ndarray(dtype=vec3, ndim=1)
 V4 = ti.types.ndarray(dtype=VEC4, ndim=1)
 # A search guard per cloth vertex (see nearest_one): where the vertex was searched, the odometer
-# then, the grid's number, the frame fraction, and the fastest corner among the cells' triangles.
+# then, the grid's number, the frame fraction, the fastest corner among the cells' triangles,
+# and for a vertex the search found a triangle for, its part and how far the nearest surface of
+# another part facing it was (G_OTHER: 1 + part + distance; 0 for a search that found none).
 GUARD = ti.types.vector(8, REAL)
-G_ODO, G_TAG, G_TIME, G_SPEED = 3, 4, 5, 6
+G_ODO, G_TAG, G_TIME, G_SPEED, G_OTHER = 3, 4, 5, 6, 7
+# The per-triangle box of a collider grid (tbox, written by grid_count) keeps the triangle's
+# body part in its last slot (T_PART), set once: -1 where the collider has no parts (a sphere, a
+# garment under another), so no guard there is of the tracked kind.
+T_PART = 7
+# Another body part counts as a facing surface when its triangle's normal is more than 60
+# degrees from the tracked triangle's (the forearm folding onto the upper arm, the arm passing
+# the torso; not the next part along a limb, whose triangles at the joint are aligned).
+FACING_COS = 0.5
+# A tracked vertex is searched again once a facing surface of another part may have come this
+# close (m): before it can reach the contact band of any built-in fabric (2 x 4 mm of cotton).
+OTHER_SURFACE_ZONE = 0.008
+# G_OTHER's distance part when no facing surface of another part was within the searched cell
+# (a cell, GRID_CELL, is far below it: the guard packs the distance after the part's integer).
+OTHER_NONE = 0.75
 V8 = ti.types.ndarray(dtype=GUARD, ndim=1)
 F1 = ti.types.ndarray(dtype=REAL, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -1201,7 +1217,7 @@ def count_triangle(
         ti.max(b1[f[1]], b1[f[2]]),
     )
     speed = ti.max(travel[f[0]], travel[f[1]], travel[f[2]])
-    tbox[t] = GUARD(lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], speed, 0.0)
+    tbox[t] = GUARD(lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], speed, tbox[t][T_PART])
     c0 = first_cell(lo, origin, inv_cell)
     c1 = last_cell(hi, origin, inv_cell, dims)
     for cx in range(c0[0], c1[0] + 1):
@@ -1458,19 +1474,42 @@ def nearest_one(
     The odometer counts the fastest limb, and on a walking body it had every loose vertex
     searched again at almost every substep: half of an xpbd frame. Cloth near the torso moves
     with it, so the local, relative bound holds for several substeps.
+
+    A tracked vertex follows its triangle's surface, and another body part closing in is not
+    on that surface: a sleeve in the elbow's crook, 15-40 mm from the upper arm it tracked, was
+    swallowed whole by the forearm folding onto it (the two overlap there), and the sleeve's
+    edges then crossed the forearm. So where the collider has parts (T_PART), a search that
+    finds a triangle also measures how near the nearest facing triangle of another part is,
+    within the cell (`other_surface`), and keeps it in the guard (G_OTHER). Where there is
+    one, SEARCH_UNTRACKED searches the tracked vertex again once the same two proofs, with that
+    distance less OTHER_SURFACE_ZONE as the budget, no longer show it farther than the zone,
+    and at once when its triangle is now of another part (a walk across the joint), so the
+    vertex tracks the other surface before it can pass. A vertex with no facing surface within
+    the cell is not guarded: it waits for the frames' full search (SimOptions.search_every),
+    and a surface that comes from beyond the cell faster than that can still pass it (guarding
+    those too, against the odometer or the local bound, searched a walking t-shirt's tracked
+    vertices again several times a frame: 50 % more time).
     """
-    clear = False
-    if w[i] > 0.0 and which == SEARCH_UNTRACKED and tri[i] < 0:
+    clear = False  # an untracked vertex provably far: not searched
+    again = False  # a tracked vertex that another part may have come near: searched
+    if w[i] > 0.0 and which == SEARCH_UNTRACKED:
         g = guard[i]
-        drift = x[i] - vec3(g[0], g[1], g[2])
-        moved = drift.norm()
-        budget = 0.5 * max_dist
-        clear = moved + ti.abs(odo - g[G_ODO]) < budget
-        if g[G_TAG] == grid_tag and moved < budget:
-            since = s_frame - g[G_TIME]
-            closing = (drift - shift * since).norm() + g[G_SPEED] * ti.abs(since)
-            clear = clear or closing < budget
-    searched = which == SEARCH_ALL or (which == SEARCH_UNTRACKED) == (tri[i] < 0)
+        if tri[i] < 0:
+            # A tracked vertex's guard (G_OTHER > 0) proves nothing once it is released.
+            budget = 0.5 * max_dist if g[G_OTHER] == 0.0 else -1.0
+            clear = guard_holds(x[i], g, budget, budget, odo, grid_tag, s_frame, shift)
+        elif g[G_OTHER] > 0.0:
+            part = ti.floor(g[G_OTHER])
+            other = g[G_OTHER] - part
+            budget = other - OTHER_SURFACE_ZONE
+            if part - 1.0 != tbox[tri[i]][T_PART]:
+                budget = -1.0  # the walk crossed to another part: what faces it is unknown
+            if other < OTHER_NONE or budget < 0.0:
+                # The searched cells must hold what can come within the budget: the vertex
+                # stays within max_dist - budget of where it was searched.
+                again = not guard_holds(x[i], g, budget, max_dist - budget, odo, grid_tag,
+                                        s_frame, shift)
+    searched = which == SEARCH_ALL or (which == SEARCH_UNTRACKED) == (tri[i] < 0) or again
     if w[i] > 0.0 and searched and not clear:
         p = x[i]
         cell = ti.cast(ti.floor((p - origin) * inv_cell), ti.i32)
@@ -1522,6 +1561,67 @@ def nearest_one(
         tri[i] = best_t
         if best_t < 0:
             guard[i] = GUARD(p[0], p[1], p[2], odo, grid_tag, s_frame, fastest, 0.0)
+        elif tbox[best_t][T_PART] >= 0.0:
+            part = tbox[best_t][T_PART]
+            other = other_surface(p, best_t, part, b0, b1, faces, origin, inv_cell, dims,
+                                  starts, items, s, max_dist, tbox)
+            guard[i] = GUARD(p[0], p[1], p[2], odo, grid_tag, s_frame, fastest,
+                             1.0 + part + other)
+
+
+@ti.func
+def guard_holds(p: vec3, g: GUARD, budget: REAL, local: REAL, odo: REAL, grid_tag: REAL,
+                s_frame: REAL, shift: vec3) -> ti.i32:
+    """Whether guard g still proves that nothing it guards against has come within `budget`
+    of the vertex at p: by the odometer, or, on the grid it was searched on and while the
+    vertex stayed within `local` of where it was, by the motions relative to the body's mean
+    (nearest_one)."""
+    drift = p - vec3(g[0], g[1], g[2])
+    moved = drift.norm()
+    holds = moved + ti.abs(odo - g[G_ODO]) < budget
+    if g[G_TAG] == grid_tag and moved < local:
+        since = s_frame - g[G_TIME]
+        closing = (drift - shift * since).norm() + g[G_SPEED] * ti.abs(since)
+        holds = holds or closing < budget
+    return holds
+
+
+@ti.func
+def other_surface(p: vec3, best_t: ti.i32, part: REAL, b0: V3, b1: V3, faces: I3,
+                  origin: vec3, inv_cell: REAL, dims: ti.math.ivec3, starts: I1, items: I1,
+                  s: REAL, reach: REAL, tbox: V8) -> REAL:
+    """How far from p the nearest triangle of a body part other than `part` that faces the
+    tracked triangle best_t is (FACING_COS), if it is within `reach` (m, below OTHER_NONE; the
+    27 cells around p hold every triangle nearer than a cell), else OTHER_NONE."""
+    f = faces[best_t]
+    a = lerp3(b0[f[0]], b1[f[0]], s)
+    nb = (lerp3(b0[f[1]], b1[f[1]], s) - a).cross(lerp3(b0[f[2]], b1[f[2]], s) - a)
+    nbl = nb.norm()
+    best = reach * reach
+    cell = ti.cast(ti.floor((p - origin) * inv_cell), ti.i32)
+    for k in range(27):
+        c = cell + ti.math.ivec3(k // 9 - 1, (k // 3) % 3 - 1, k % 3 - 1)
+        cid = grid_cell(c, dims)
+        if cid >= 0:
+            for q in range(starts[cid], starts[cid + 1]):
+                t = items[q]
+                tb = tbox[t]
+                if tb[T_PART] != part:
+                    swept = ti.max(vec3(tb[0], tb[1], tb[2]) - p, 0.0,
+                                   p - vec3(tb[3], tb[4], tb[5]))
+                    if swept.norm_sqr() < best:
+                        g = faces[t]
+                        ta = lerp3(b0[g[0]], b1[g[0]], s)
+                        tb_ = lerp3(b0[g[1]], b1[g[1]], s)
+                        tc = lerp3(b0[g[2]], b1[g[2]], s)
+                        nt = (tb_ - ta).cross(tc - ta)
+                        if nt.dot(nb) < FACING_COS * nt.norm() * nbl:
+                            r = closest_on_triangle(p, ta, tb_, tc)
+                            best = ti.min(best, r[3])
+    found = ti.cast(OTHER_NONE, REAL)
+    if best < reach * reach:
+        found = ti.sqrt(best)
+    return found
 
 
 @ti.kernel

@@ -326,6 +326,8 @@ class ColliderTrack:
     face_mask: np.ndarray  # (T,) bool
     fps: float = 30.0
     lead_in_frames: int = 0
+    # (T,) each face's body part, or None for a collider that is one surface (BodyCollider)
+    face_parts: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -333,8 +335,9 @@ class ColliderTrack:
 
 
 def track_of(body: BodySequence) -> ColliderTrack:
-    return ColliderTrack(body.vertices, body.rest.faces, body.collider_face_mask, body.fps,
-                         body.lead_in_frames)
+    faces = body.rest.faces
+    return ColliderTrack(body.vertices, faces, body.collider_face_mask, body.fps,
+                         body.lead_in_frames, body.rest.part_labels[faces[:, 0]])
 
 
 def body_start_transform(body: BodySequence) -> tuple[np.ndarray, np.ndarray]:
@@ -379,7 +382,8 @@ class _Simulation:
         if body is not None:
             self.faces = np.asarray(body.faces)
             self.mask = np.asarray(body.face_mask, dtype=bool)
-            self.collider = BodyCollider(self.faces, self.mask, body.vertices.shape[1])
+            self.collider = BodyCollider(self.faces, self.mask, body.vertices.shape[1],
+                                         face_parts=body.face_parts)
         else:
             self.collider = None
         self.pins = None

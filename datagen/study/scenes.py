@@ -158,11 +158,14 @@ def settled_start(name: str, garments: list[Garment], body) -> dict[str, np.ndar
 
 
 def garment_on_body(name: str, template: str, action: str, fabric: str,
-                    frames: int = SCENE_FRAMES["tshirt_walk"]) -> StudyScene:
+                    frames: int = SCENE_FRAMES["tshirt_walk"],
+                    body_parts: bool = False) -> StudyScene:
     """A shipped template (neutral female body, no shaping or cuts) on a body moving through a
     procedural action. The scene starts when the lead-in ends, from the settled start (see
     settled_start): the cloth at rest, draped on the body in the motion's first pose. Its rest
-    metric stays the template's."""
+    metric stays the template's. `body_parts`: the collider knows the body's parts, as a
+    dataset's does (simulate.track_of); the accuracy study's scenes were measured without them
+    (their start is the same either way)."""
     from datagen.body.anny_model import default_body_model
     from datagen.garment.outfit import make_outfit
     from datagen.spec import GarmentSpec, OutfitSpec
@@ -175,23 +178,28 @@ def garment_on_body(name: str, template: str, action: str, fabric: str,
     start = settled_start(name, fitted, body)
     placed = [replace(g, vertices=start[g.name], rest_vertices=g.rest) for g in fitted]
     track = _body_track(body, lead_in, len(body.vertices))
+    if body_parts:
+        track = replace(track, face_parts=body.rest.part_labels[body.rest.faces[:, 0]])
     return StudyScene(name, fabric, "1cm", placed, track, frames, 30, frames)
 
 
 def build_scene(name: str, fabric: str, resolution: str = "", frames: int | None = None,
-                perturb: float = 0.0) -> StudyScene:
+                perturb: float = 0.0, body_parts: bool = False) -> StudyScene:
     """A study scene by name. `frames` shortens or lengthens it; `perturb` (metres) moves every
     cloth vertex of the start by that distance in a fixed random direction: the twin run that
-    shows how soon the scene's chaos makes trajectories unpredictable."""
+    shows how soon the scene's chaos makes trajectories unpredictable. `body_parts`: a body
+    scene's collider knows the body's parts (garment_on_body)."""
     extra = {"frames": frames if frames is not None else SCENE_FRAMES.get(name, 60)}
     if name == "sheet_sphere":
         scene = sheet_sphere(fabric, resolution or "4k", **extra)
     elif name == "tube_cylinder":
         scene = tube_cylinder(fabric, resolution or "5k", **extra)
     elif name == "skirt_body":
-        scene = garment_on_body("skirt_body", "skirt", "spin", fabric, **extra)
+        scene = garment_on_body("skirt_body", "skirt", "spin", fabric, **extra,
+                                body_parts=body_parts)
     elif name == "tshirt_walk":
-        scene = garment_on_body("tshirt_walk", "tshirt", "walk", fabric, **extra)
+        scene = garment_on_body("tshirt_walk", "tshirt", "walk", fabric, **extra,
+                                body_parts=body_parts)
     else:
         raise ValueError(f"unknown study scene {name}")
     if perturb:
