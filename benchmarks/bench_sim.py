@@ -229,7 +229,8 @@ import json, sys
 from datagen.study.run import run_ours
 from datagen.study.scenes import build_scene
 name, fabric, resolution, effects = sys.argv[4:8]
-scene = build_scene(name, fabric, resolution, frames=int(sys.argv[1]))
+# A body scene's collider knows the body's parts, as a dataset's does (no effect elsewhere).
+scene = build_scene(name, fabric, resolution, frames=int(sys.argv[1]), body_parts=True)
 run = run_ours(scene, "xpbd", int(sys.argv[2]), int(sys.argv[3]), effects=effects,
                on_warm=lambda: (print("ready", flush=True), sys.stdin.readline()))
 print(json.dumps({"wall": run.wall, "setup": run.setup, "simulated": run.simulated}))
