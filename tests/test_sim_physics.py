@@ -860,9 +860,11 @@ def test_the_one_launch_serial_grid_is_the_three_kernel_grid(hashed, monkeypatch
     blocks = ti.ndarray(ti.i32, n_cells // K.PREFIX_BLOCK + 2)
     items = ti.ndarray(ti.i32, total)
     tbox = ti.ndarray(K.GUARD, len(faces))
-    boxes = np.zeros((len(faces), K.GUARD.n), np.float32)
+    from datagen.sim.precision import NP_REAL
+
+    boxes = np.zeros((len(faces), K.GUARD.n), NP_REAL)
     boxes[:, K.T_PART] = -1.0  # set once (a collider without parts): grid_count keeps it
-    tbox.from_numpy(boxes.astype(collider.tbox.to_numpy().dtype))
+    tbox.from_numpy(boxes)
     args = (collider.origin, collider.inv_cell, collider.dims)
     K.grid_count(collider.b0, collider.b1, collider.faces, collider.mask, *args, counts,
                  collider.relative_travel, tbox, True)
