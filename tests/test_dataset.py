@@ -82,6 +82,11 @@ def test_resume_after_sigkill(tmp_path):
     assert errors(out) == []
     card = (out / "README.md").read_text()
     assert "Garment types" in card and "Fabrics" in card and "Actions" in card
+    # every sequence was made here, by this machine and these versions
+    from datagen.environment import environment
+
+    assert f"| {environment()['cpu']}; python {environment()['python']}; datagen " in card
+    assert all(row["environment"] == rows[0]["environment"] for row in rows)
     # a run that has nothing left to do changes nothing
     before = {p.name: p.stat().st_mtime for p in out.glob("shard-*.h5")}
     r = run_cli("dataset", "--pipeline", recipe, "--out", out, "--workers", "1",

@@ -264,3 +264,35 @@ def test_storage_figures(tmp_path):
     assert info.vertex_frames == 2 * 2 * 30 * 240
     assert 0 < quant_bpvf < lossless_bpvf <= 12.5  # raw float32 is 12 bytes
     assert quant_bpvf <= 6.5  # raw int16 is 6 bytes
+
+
+def test_each_sequence_records_the_environment_of_the_worker_that_made_it(tmp_path):
+    """A cluster's workers can differ from the process that writes the shard: the record's
+    environment (datagen.environment, taken where run_sequence ran) is what is stored, for
+    finished and rejected sequences alike, and the manifest names it."""
+    import json
+
+    import numpy
+    import taichi
+
+    from datagen.environment import environment
+    from datagen.pipeline.dataset import manifest_rows
+
+    here = environment()
+    assert here["packages"]["numpy"] == numpy.__version__
+    assert here["packages"]["taichi"] == ".".join(map(str, taichi.__version__))
+    assert here["python"] == ".".join(map(str, sys.version_info[:3]))
+    worker = {**here, "cpu": "Worker CPU 9000", "packages": {**here["packages"], "anny": "9.9"}}
+    done = sf.make_record(0, frames=4, lead_in=2, garments=("upper",)).record
+    done.environment = worker
+    rejected = sf.make_rejected(1)
+    rejected.environment = worker
+    sf.write_shard(tmp_path / "shard-00000.h5", [done, rejected])
+    with h5py.File(tmp_path / "shard-00000.h5", "r") as f:
+        for group in (f["sequences"][done.spec.sequence_id],
+                      f["rejected"][rejected.spec.sequence_id]):
+            assert json.loads(group.attrs["environment"]) == worker
+    labels = {row["id"]: row["environment"] for row in manifest_rows(tmp_path)}
+    assert set(labels) == {done.spec.sequence_id, rejected.spec.sequence_id}
+    for label in labels.values():
+        assert label.startswith("Worker CPU 9000; python ") and "anny 9.9" in label

@@ -361,6 +361,14 @@ def write_garments(group: h5py.Group, garments, sim, trans: np.ndarray, quantize
             write_array(qa, name, np.asarray(series, dtype=np.float32))
 
 
+def _environment_json(record) -> str:
+    """The environment of the worker that made the record (datagen.environment); this
+    process's for a record that carries none (one built by hand, not by run_sequence)."""
+    from datagen.environment import environment
+
+    return json.dumps(getattr(record, "environment", None) or environment(), sort_keys=True)
+
+
 def write_record(writer: ShardWriter, record, store_body_vertices: bool = False,
                  quantize: bool = False) -> None:
     """A finished sequence (its group) or a rejection (under /rejected, with the reason)."""
@@ -371,9 +379,11 @@ def write_record(writer: ShardWriter, record, store_body_vertices: bool = False,
         rej.attrs["reason"] = record.reason or ""
         rej.attrs["frames"] = np.asarray(record.frames if record.frames else (-1, -1))
         rej.attrs["timings"] = json.dumps(record.timings, sort_keys=True)
+        rej.attrs["environment"] = _environment_json(record)
         return
     group = writer.sequence_group(record.spec)
     group.attrs["timings"] = json.dumps(record.timings, sort_keys=True)
+    group.attrs["environment"] = _environment_json(record)
     write_body(group, record.body, store_body_vertices)
     if record.garments:
         trans = record.body.trans[record.body.lead_in_frames:]

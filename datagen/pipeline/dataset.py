@@ -190,6 +190,7 @@ def manifest_rows(out: Path) -> list[dict]:
                     "fabrics": [str(garments[n].attrs["fabric"]) for n in garments],
                     "action": spec["motion"]["action"], "frames": int(g.attrs["frames"]),
                     "qa": qa, "wall_time": float(sum(timings.values())),
+                    "environment": _environment_label(g),
                 })
             for seq_id, g in f.get("rejected", {}).items():
                 spec = json.loads(g.attrs["spec"])
@@ -202,9 +203,21 @@ def manifest_rows(out: Path) -> list[dict]:
                     "fabrics": [p["fabric"] for p in spec["outfit"]["garments"]],
                     "action": spec["motion"]["action"], "frames": 0, "qa": {},
                     "wall_time": float(sum(timings.values())),
+                    "environment": _environment_label(g),
                 })
     rows.sort(key=lambda r: r["index"])
     return rows
+
+
+def _environment_label(group) -> str | None:
+    """'CPU; python X; datagen X, anny X, ...' from a sequence's `environment` attribute (the
+    worker that made it: datagen.environment); None for a shard written before it existed."""
+    text = group.attrs.get("environment")
+    if text is None:
+        return None
+    env = json.loads(text)
+    packages = ", ".join(f"{k} {v}" for k, v in env["packages"].items() if v is not None)
+    return f"{env['cpu']}; python {env['python']}; {packages}"
 
 
 def write_manifest(out: Path) -> list[dict]:
@@ -253,6 +266,12 @@ def write_card(out: Path, loaded: LoadedRecipe, rows: list[dict], wall: float | 
         "## Garment types", "", table(Counter(g for r in ok for g in r["garments"]), "type"), "",
         "## Fabrics", "", table(Counter(f for r in ok for f in r["fabrics"]), "fabric"), "",
         "## Actions", "", table(Counter(r["action"] for r in ok), "action"), "",
+        "## Made on", "",
+        "The machine and package versions of the workers that made the sequences (each "
+        "sequence's `environment` attribute). The same seed gives the same data on the same "
+        "machine and software; elsewhere float rounding differs, and a chaotic frame can "
+        "amplify it.", "",
+        table(Counter(r.get("environment") or "not recorded" for r in rows), "environment"), "",
         "## Rejections", "",
     ]
     if rejected:

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from datagen.environment import environment
 from datagen.errors import RejectedSequence
 from datagen.recipe import BodyConfig
 from datagen.spec import SceneSpec
@@ -36,6 +37,8 @@ class SequenceRecord:
     reason: str | None = None
     frames: tuple[int, int] | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    # The machine and package versions of the worker that made it (datagen.environment).
+    environment: dict[str, object] = field(default_factory=dict)
 
     @property
     def wall_time(self) -> float:
@@ -70,7 +73,7 @@ def run_sequence(
     from datagen.garment.outfit import dropped_parts_for, make_outfit
     from datagen.motion.load import motion_from_spec
 
-    record = SequenceRecord(spec=spec, status="ok")
+    record = SequenceRecord(spec=spec, status="ok", environment=environment())
     config = body_config or BodyConfig()
     try:
         t = time.perf_counter()
@@ -207,7 +210,8 @@ def reject_over_qa_bounds(record: SequenceRecord) -> SequenceRecord:
     frame = found[0].frame
     return SequenceRecord(
         spec=record.spec, status="rejected", stage="qa",
-        reason=reason, frames=(frame, frame), timings=record.timings)
+        reason=reason, frames=(frame, frame), timings=record.timings,
+        environment=record.environment)
 
 
 def over_qa_bounds(record: SequenceRecord,
