@@ -63,3 +63,37 @@ def test_bad_case_file_names_the_field(tmp_path):
                    "    expect: maybe\n")
     with pytest.raises(InputError, match=r"cases\[0\]\.expect"):
         load_hard_cases(bad)
+
+
+def test_buried_share_sees_cloth_inside_a_part_that_passes_through_another():
+    """Two closed boxes that overlap, as a flexed thigh and the lower torso do: a point inside
+    box A, 5 cm from box B's face (on its outer side), is 45 cm inside A. Its nearest triangle is
+    B's and says outside (the simulator's deep_share); qa.buried_share says inside."""
+    import igl
+    import trimesh
+
+    from datagen.qa import buried_share
+
+    a = trimesh.creation.box(bounds=[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    b = trimesh.creation.box(bounds=[[0.5, 0.0, 0.0], [1.5, 1.0, 1.0]])
+    body = np.concatenate([a.vertices, b.vertices])
+    faces = np.concatenate([a.faces, b.faces + len(a.vertices)])
+    points = np.array([
+        [0.45, 0.5, 0.5],  # inside A, 5 cm outside B's face: buried
+        [0.495, 0.5, 0.5],  # inside A, within the thickness of B's face: not
+        [2.0, 0.5, 0.5],  # outside both
+        [1.2, 0.5, 0.5],  # inside B, 20 cm outside A's face (its nearest): buried
+    ])
+    thickness = np.full(len(points), 0.01)
+    nearest_sign, *_ = igl.signed_distance(points, body, faces.astype(np.int64),
+                                          sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
+    assert nearest_sign[0] > 0  # the blind spot: read as outside by its nearest triangle
+    per_point = [buried_share(points[None, [k]], thickness[[k]], body[None], faces)[0]
+                 for k in range(len(points))]
+    assert per_point == [1.0, 0.0, 0.0, 1.0]
+    # (F, V, 3) over frames: the box moves away in the second frame, nothing is inside it then
+    frames = np.stack([points, points])
+    moved = np.stack([body, body + [0.0, 0.0, 10.0]])
+    assert buried_share(frames, thickness, moved, faces).tolist() == [0.5, 0.0]
+    with pytest.raises(ValueError, match="matching frames"):
+        buried_share(frames, thickness[:2], moved, faces)

@@ -89,6 +89,9 @@ class CaseResult:
     strain_share_max: float = float("nan")
     strain_p999_max: float = float("nan")
     deep_share_max: float = float("nan")
+    # inside the body's volume, the union of its parts (qa.buried_share): deep_share's blind
+    # spot is cloth inside a part that passes through another
+    buried_share_max: float = float("nan")
     kinetic_per_kg_max: float = float("nan")
     retries: int = 0
 
@@ -218,6 +221,8 @@ def judge(case: Case, record) -> CaseResult:
     res.strain_p999_max = float(qa["strain_p999"].max())
     res.deep_share_max = float(qa["deep_share"].max()) if "deep_share" in qa else 0.0
     res.kinetic_per_kg_max = float(qa["kinetic_energy"].max()) / mass
+    buried = _buried_share(record)
+    res.buried_share_max = float(buried.max())
     problems = []
     worst = []  # the frames where a bound broke
     if not finite:
@@ -228,6 +233,10 @@ def judge(case: Case, record) -> CaseResult:
     if res.deep_share_max > DEEP_SHARE_MAX:
         problems.append(f"{100 * res.deep_share_max:.2f} % of vertices deeper than the thickness")
         worst.append(int(np.argmax(qa["deep_share"])))
+    if res.buried_share_max > DEEP_SHARE_MAX:
+        problems.append(f"{100 * res.buried_share_max:.2f} % of vertices deeper than the "
+                        "thickness inside the body's volume (its parts' union)")
+        worst.append(int(np.argmax(buried)))
     if res.kinetic_per_kg_max > KINETIC_PER_KG_MAX:
         problems.append(f"kinetic energy {res.kinetic_per_kg_max:.1f} J/kg")
     res.passed = not problems
@@ -238,6 +247,19 @@ def judge(case: Case, record) -> CaseResult:
         res.detail += groin_overlap_note(getattr(record, "body", None), worst)
     res.detail += escalation_note(sim)
     return res
+
+
+def _buried_share(record) -> np.ndarray:
+    """qa.buried_share for a finished record: every garment's vertices at the output frames
+    against the whole body (all its triangles, the parts the collider leaves out included)."""
+    from datagen.qa import buried_share
+    from datagen.sim.fabrics import get_fabric
+
+    sim, body = record.sim, record.body
+    cloth = np.concatenate([sim.vertices[g.name] for g in record.garments], axis=1)
+    thickness = np.concatenate([np.full(len(g.vertices), get_fabric(g.fabric).thickness)
+                                for g in record.garments])
+    return buried_share(cloth, thickness, body.vertices[body.lead_in_frames:], body.rest.faces)
 
 
 def _cloth_mass(record) -> float:
@@ -277,13 +299,15 @@ def run_case(case: Case, cases: HardCases, body_model, base_dir: Path, short: bo
 
 def results_markdown(results: list[CaseResult]) -> str:
     rows = ["| case | expected | outcome | frames | vertices | retries | max strain p99.9 | "
-            "edges over bound (max) | vertices too deep (max) | KE max J/kg | wall s | verdict |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            "edges over bound (max) | vertices too deep (max) | too deep in the body's volume "
+            "(max) | KE max J/kg | wall s | verdict |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         rows.append(
             f"| {r.name} | {r.expect} | {r.detail} | {r.frames} | {r.vertices} | {r.retries} | "
             f"{r.strain_p999_max:.3f} | {100 * r.strain_share_max:.3f} % | "
-            f"{100 * r.deep_share_max:.3f} % | {r.kinetic_per_kg_max:.2f} | {r.wall_s:.0f} | "
+            f"{100 * r.deep_share_max:.3f} % | {100 * r.buried_share_max:.3f} % | "
+            f"{r.kinetic_per_kg_max:.2f} | {r.wall_s:.0f} | "
             f"{'pass' if r.passed else 'FAIL'} |"
         )
     return "\n".join(rows)
