@@ -85,7 +85,11 @@ def test_resume_after_sigkill(tmp_path):
     # every sequence was made here, by this machine and these versions
     from datagen.environment import environment
 
-    assert f"| {environment()['cpu']}; python {environment()['python']}; datagen " in card
+    here = environment()
+    made_on = [line for line in card.splitlines()
+               if line.startswith(f"| {here['cpu']}; python {here['python']}; ")]
+    assert len(made_on) == 1 and made_on[0].endswith("| 6 |"), card
+    assert f"taichi {here['packages']['taichi']}" in made_on[0]
     assert all(row["environment"] == rows[0]["environment"] for row in rows)
     # a run that has nothing left to do changes nothing
     before = {p.name: p.stat().st_mtime for p in out.glob("shard-*.h5")}
