@@ -19,6 +19,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from datagen.environment import environment
 from datagen.errors import InputError
 from datagen.skinning import apply_linear_skinning, apply_sparse_offsets
 from datagen.spec import SceneSpec
@@ -364,9 +365,7 @@ def write_garments(group: h5py.Group, garments, sim, trans: np.ndarray, quantize
 def _environment_json(record) -> str:
     """The environment of the worker that made the record (datagen.environment); this
     process's for a record that carries none (one built by hand, not by run_sequence)."""
-    from datagen.environment import environment
-
-    return json.dumps(getattr(record, "environment", None) or environment(), sort_keys=True)
+    return json.dumps(record.environment or environment(), sort_keys=True)
 
 
 def write_record(writer: ShardWriter, record, store_body_vertices: bool = False,

@@ -210,8 +210,9 @@ def manifest_rows(out: Path) -> list[dict]:
 
 
 def _environment_label(group) -> str | None:
-    """'CPU; python X; datagen X, anny X, ...' from a sequence's `environment` attribute (the
-    worker that made it: datagen.environment); None for a shard written before it existed."""
+    """'CPU; python X; anny X, datagen X, ...' (packages as stored, by name) from a sequence's
+    `environment` attribute (the worker that made it: datagen.environment); None for a shard
+    written before it existed."""
     text = group.attrs.get("environment")
     if text is None:
         return None
@@ -271,7 +272,7 @@ def write_card(out: Path, loaded: LoadedRecipe, rows: list[dict], wall: float | 
         "sequence's `environment` attribute). The same seed gives the same data on the same "
         "machine and software; elsewhere float rounding differs, and a chaotic frame can "
         "amplify it.", "",
-        table(Counter(r.get("environment") or "not recorded" for r in rows), "environment"), "",
+        table(Counter(r["environment"] or "not recorded" for r in rows), "environment"), "",
         "## Rejections", "",
     ]
     if rejected:
