@@ -243,9 +243,11 @@ def body(
         f"wrote {out}: sequence {spec.sequence_id}, {spec.subject.gender}, action "
         f"{spec.motion.action}, {spec.motion.frames} frames; self-collision: "
         f"{sc.frames_with_contact} frames with contact, {sc.repaired_vertices} vertex repairs"
-        + (f"; a thigh overlaps the lower torso in {len(sc.groin_overlap_frames)} frames "
-           f"(up to {sc.groin_overlap_max_extent * 100:.0f} cm across, not repaired)"
-           if sc.groin_overlap_frames else "")
+        + (f"; skinning sank parts into each other across a flexed joint in "
+           f"{len(sc.flexion_overlap_frames)} frames (up to "
+           f"{sc.flexion_overlap_max_depth * 100:.1f} cm deep), separated with "
+           f"{sc.flexion_residual_pairs} triangle pairs left crossing"
+           if sc.flexion_overlap_frames else "")
     )
 
 

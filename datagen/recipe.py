@@ -89,12 +89,18 @@ class BodyConfig:
     )
     arm_clearance: bool = True  # abduct arms that would sit inside a broad subject's torso
     thinner_retries: int = 1  # retries with a thinner body before rejecting
+    # Where skinning sinks a part into its neighbour across a flexed joint (hip, knee), both
+    # surfaces meet at a shared contact surface this far apart (datagen.body.flexion): room for
+    # the cloth caught between them. null leaves the overlap as skinning made it.
+    flexion_gap: float | None = 0.01
 
     def validate(self, source, path: str) -> None:
         check_range(self.repair_gap, 0.0, 0.05, source, f"{path}.repair_gap")
         check_range(self.max_solvable_extent, 0.0, 1.0, source, f"{path}.max_solvable_extent")
         check_range(self.max_solvable_depth, 0.0, 1.0, source, f"{path}.max_solvable_depth")
         check_range(self.thinner_retries, 0, 5, source, f"{path}.thinner_retries")
+        if self.flexion_gap is not None:
+            check_range(self.flexion_gap, 0.0, 0.05, source, f"{path}.flexion_gap")
         from datagen.body.parts import PART_NAMES
 
         for name in self.unrepaired_parts:

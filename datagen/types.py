@@ -88,12 +88,19 @@ class SelfCollisionReport:
     arm_clearance_max_deg: float = 0.0  # largest abduction added to fit the arms to the torso
     arm_clearance_frames: int = 0
     thinner_retries: int = 0
-    # Frames (of `vertices`, lead-in included) where a thigh overlaps the lower torso, which the
-    # repair leaves alone (datagen.body.parts.GROIN_PAIRS): the largest overlap's extent and its
-    # depth, estimated as for self-collisions. Cloth caught there cannot be outside the body.
-    groin_overlap_frames: list[int] = field(default_factory=list)
-    groin_overlap_max_extent: float = 0.0  # metres
-    groin_overlap_max_depth: float = 0.0  # metres
+    # Frames (of `vertices`, lead-in included) where skinning sank a part into its neighbour
+    # across a flexed joint (datagen.body.parts.FLEXION_SIDES: a thigh into the lower torso, a
+    # calf into its thigh), with the largest overlap's extent and depth, estimated as for
+    # self-collisions; the body stage then moves both surfaces to a shared contact surface
+    # (datagen.body.flexion): vertices moved, the largest move, and the frames and triangle
+    # pairs that still intersect afterwards (cloth caught there cannot be outside the body).
+    flexion_overlap_frames: list[int] = field(default_factory=list)
+    flexion_overlap_max_extent: float = 0.0  # metres
+    flexion_overlap_max_depth: float = 0.0  # metres
+    flexion_separated_vertices: int = 0  # distinct (frame, vertex) moved
+    flexion_max_offset: float = 0.0  # metres
+    flexion_residual_frames: list[int] = field(default_factory=list)
+    flexion_residual_pairs: int = 0
 
     def as_dict(self) -> dict:
         return {
@@ -108,9 +115,13 @@ class SelfCollisionReport:
             "arm_clearance_max_deg": self.arm_clearance_max_deg,
             "arm_clearance_frames": self.arm_clearance_frames,
             "thinner_retries": self.thinner_retries,
-            "groin_overlap_frames": list(self.groin_overlap_frames),
-            "groin_overlap_max_extent": self.groin_overlap_max_extent,
-            "groin_overlap_max_depth": self.groin_overlap_max_depth,
+            "flexion_overlap_frames": list(self.flexion_overlap_frames),
+            "flexion_overlap_max_extent": self.flexion_overlap_max_extent,
+            "flexion_overlap_max_depth": self.flexion_overlap_max_depth,
+            "flexion_separated_vertices": self.flexion_separated_vertices,
+            "flexion_max_offset": self.flexion_max_offset,
+            "flexion_residual_frames": list(self.flexion_residual_frames),
+            "flexion_residual_pairs": self.flexion_residual_pairs,
         }
 
 

@@ -259,30 +259,76 @@ def test_full_repair_pipeline(body_model, rest):
     assert np.abs(rebuilt - v).max() < 1e-5
 
 
-def test_groin_overlap_is_reported_where_the_kicking_thigh_sinks_into_the_belly(body_model):
-    """The repair leaves thigh against pelvis alone (skeleton neighbours), but the report says
-    in which frames the skinning sinks a raised thigh into the lower torso: during a high
-    kick's extension and re-chamber, never while both feet stand or in a walk."""
+def test_flexed_hip_and_knee_are_separated_at_a_shared_contact_surface(body_model):
+    """Skinning sinks a raised thigh into the belly and the calf into the hamstring during a
+    high kick's extension and re-chamber (never in a walk); the body stage finds it, moves both
+    surfaces to a contact surface between them, and stores the moves with the sparse repair
+    offsets. Afterwards almost no vertex of those parts lies inside another part, few triangle
+    pairs still cross, the surface does not fold over, and the offsets rebuild the vertices."""
     import json
 
+    import igl
+
+    from datagen.body.flexion import FlexionSeparator
+    from datagen.body.parts import FLEXION_PAIRS, FLEXION_REST_RADIUS
     from datagen.body.sequence import build_body_sequence
     from datagen.motion.load import motion_from_spec
     from datagen.spec import MotionSpec, SubjectSpec
 
-    def report(action, params, frames):
+    def build(action, params, frames, config=None):
         spec = MotionSpec(action=action, params=params, frames=frames)
-        seq = build_body_sequence(SubjectSpec(gender="male"), motion_from_spec(spec, None), 0,
-                                  body_model, BodyConfig())
-        return seq.self_collision
+        return build_body_sequence(SubjectSpec(gender="male"), motion_from_spec(spec, None), 0,
+                                   body_model, config or BodyConfig())
 
-    kick = report("kick", {"height": 1.0}, 45)  # the first kick: chamber at 0.55 s, down at 1.45 s
-    frames = kick.groin_overlap_frames
-    assert frames, "a 1 m kick sinks the thigh into the belly"
-    assert min(frames) >= int(0.55 * 30) and max(frames) <= int(1.45 * 30), frames
-    assert kick.groin_overlap_max_extent > 0.10
-    assert json.loads(json.dumps(kick.as_dict()))["groin_overlap_frames"] == frames
-    walk = report("walk", {}, 45)
-    assert walk.groin_overlap_frames == [] and walk.groin_overlap_max_depth == 0.0
+    kick = build("kick", {"height": 1.0}, 45)  # the first kick: chamber at 0.55 s, down at 1.45 s
+    report = kick.self_collision
+    found = report.flexion_overlap_frames
+    assert found, "a 1 m kick sinks the thigh into the belly"
+    assert min(found) >= int(0.55 * 30) and max(found) <= int(1.45 * 30), found
+    assert report.flexion_overlap_max_extent > 0.10 and report.flexion_overlap_max_depth > 0.05
+    assert json.loads(json.dumps(report.as_dict()))["flexion_overlap_frames"] == found
+
+    rest = kick.rest
+    skinned = body_model.pose(rest, kick.poses, kick.trans).vertices
+    faces = rest.faces.astype(np.int64)
+    hips_and_legs = np.isin(rest.part_labels, [PART_INDEX[p] for p in (
+        "pelvis", "spine_lower", "thigh_l", "thigh_r", "shin_l", "shin_r")])
+    separator = FlexionSeparator(rest, 0.01)
+
+    def inside_another_part(v):
+        v = v.astype(np.float64)
+        probe = v + 1e-3 * separator.vertex_normals(v)
+        return int(np.count_nonzero(igl.fast_winding_number(v, faces, probe)[hips_and_legs] > 0.5))
+
+    before = sum(inside_another_part(skinned[f]) for f in found)
+    after = sum(inside_another_part(kick.vertices[f]) for f in found)
+    assert before > 500 and after < 0.25 * before, (before, after)
+    detector = SelfCollisionDetector(rest.faces, rest.part_labels, rest.vertices,
+                                     pairs=FLEXION_PAIRS, local_radius=FLEXION_REST_RADIUS)
+    pairs_before = sum(c.n_pairs for c in detector.detect(skinned[found]))
+    assert report.flexion_residual_pairs < 0.1 * pairs_before, (report.flexion_residual_pairs,
+                                                                 pairs_before)
+    assert 0.01 < report.flexion_max_offset < 0.15
+
+    # The surface stays a surface: few triangles turn over (the moved ones number thousands).
+    def face_normals(v):
+        t = v[:, faces]
+        return np.cross(t[:, :, 1] - t[:, :, 0], t[:, :, 2] - t[:, :, 0])
+
+    turned = np.einsum("fti,fti->ft", face_normals(skinned[found]),
+                       face_normals(kick.vertices[found]))
+    assert np.count_nonzero(turned < 0) < 20 * len(found)
+    # The sparse offsets (the self-collision repair's and the separation's) rebuild the vertices.
+    rebuilt = skinned.copy()
+    np.add.at(rebuilt, (kick.repair_frames, kick.repair_vertices), kick.repair_offsets)
+    assert np.abs(rebuilt - kick.vertices).max() < 1e-5
+    assert len(kick.repair_vertices) >= report.flexion_separated_vertices > 0
+
+    # flexion_gap null leaves the overlap as skinning made it, and says so.
+    left = build("kick", {"height": 1.0}, 45, BodyConfig(flexion_gap=None)).self_collision
+    assert left.flexion_residual_frames == found and left.flexion_separated_vertices == 0
+    walk = build("walk", {}, 45).self_collision
+    assert walk.flexion_overlap_frames == [] and walk.flexion_separated_vertices == 0
 
 
 def test_procedural_actions_are_mostly_intersection_free(body_model):
@@ -305,7 +351,8 @@ def test_procedural_actions_are_mostly_intersection_free(body_model):
         gender = "female" if rng.random() < 2 / 3 else "male"
         shape = {name: float(rng.uniform(*SHAPE_RANGE[name])) for name in SHAPE_NAMES}
         motion = generate(actions[k % len(actions)], 60, 10.0)  # 6 s, every 3rd frame at 30 fps
-        config = BodyConfig(thinner_retries=0)
+        # Counted before any change to the mesh: the flexion separation is tested above.
+        config = BodyConfig(thinner_retries=0, flexion_gap=None)
         try:
             seq = build_body_sequence(
                 SubjectSpec(gender=gender, shape=shape), motion, 0, body_model, config

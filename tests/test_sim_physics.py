@@ -933,14 +933,23 @@ def test_coloured_sweeps_on_two_threads_equal_one_thread_and_stay_physical(tmp_p
     script = Path(__file__).with_name("parallel_sweeps.py")
     repo = Path(__file__).resolve().parents[1]
     runs = {}
-    for mode, threads in (("serial", "1"), ("coloured", "1"), ("threads", "2")):
-        out = tmp_path / f"{mode}.npz"
+
+    def start(mode: str, threads: str) -> subprocess.Popen:
         env = dict(os.environ, DATAGEN_TI_THREADS=threads,
                    PYTHONPATH=os.pathsep.join([str(repo), os.environ.get("PYTHONPATH", "")]))
-        r = subprocess.run([sys.executable, str(script), mode, str(out)], env=env,
-                           capture_output=True, text=True, timeout=600)
-        assert r.returncode == 0, r.stderr[-3000:]
-        runs[mode] = dict(np.load(out))
+        return subprocess.Popen([sys.executable, str(script), mode, str(tmp_path / f"{mode}.npz")],
+                                env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def finish(mode: str, process: subprocess.Popen) -> None:
+        _, err = process.communicate(timeout=600)
+        assert process.returncode == 0, err[-3000:]
+        runs[mode] = dict(np.load(tmp_path / f"{mode}.npz"))
+
+    # The two one-thread runs side by side (one core each), then the two-thread run alone.
+    one_thread = {mode: start(mode, "1") for mode in ("serial", "coloured")}
+    for mode, process in one_thread.items():
+        finish(mode, process)
+    finish("threads", start("threads", "2"))
     assert bool(runs["serial"]["serial"]) and not bool(runs["threads"]["serial"])
     assert not bool(runs["coloured"]["serial"])
     assert runs["serial"]["steps"].tolist() == [20, 4]

@@ -99,6 +99,7 @@ def test_distributions(recipe_path):
         ("  female_fraction: 0.6666667", "subject.female_fraction"),
         ("seed: 1234", "simulation.effects"),
         ("seed: 1234", "simulation.settle_seconds"),
+        ("seed: 1234", "body.flexion_gap"),
     ],
 )
 def test_bad_recipes_name_the_field(tmp_path, patch, field):
@@ -110,6 +111,7 @@ def test_bad_recipes_name_the_field(tmp_path, patch, field):
         "simulation.effects": "seed: 1234\nsimulation: {effects: 'auto,self_collision'}",
         # NaN passes every range check (each comparison is false): rejected as not finite.
         "simulation.settle_seconds": "seed: 1234\nsimulation: {settle_seconds: .nan}",
+        "body.flexion_gap": "seed: 1234\nbody: {flexion_gap: 0.5}",
     }[field]
     p = tmp_path / "bad.yaml"
     p.write_text(RECIPE.replace(patch, replacement))

@@ -335,26 +335,31 @@ def test_qa_gate_rejects_what_validate_would_fail(tmp_path):
         assert f["rejected"][name].attrs["stage"] == "qa"
 
 
-def test_qa_gate_names_the_bodys_groin_overlap_at_the_breach_frame():
-    """A sequence over a QA bound in a frame where the body stage found a thigh sunk into the
-    lower torso (body frames count the lead-in, QA frames do not) is rejected with a reason
-    that says so; a breach in another frame is not blamed on the body."""
+def test_qa_gate_names_the_bodys_residual_flexion_overlap_at_the_breach_frame():
+    """A sequence over a QA bound in a frame where the body's parts still intersect across a
+    flexed joint after the body stage separated them (body frames count the lead-in, QA frames
+    do not) is rejected with a reason that says so; a breach in another frame is not blamed on
+    the body."""
     from datagen.pipeline.stages import reject_over_qa_bounds
 
     made = sf.make_record(1)
     record = made.record
     report = record.body.self_collision
-    report.groin_overlap_frames = [made.lead_in + 4, made.lead_in + 5]
-    report.groin_overlap_max_depth = 0.0844
+    report.flexion_overlap_frames = [made.lead_in + k for k in range(2, 8)]
+    report.flexion_residual_frames = [made.lead_in + 4, made.lead_in + 5]
+    report.flexion_overlap_max_depth = 0.0844
+    report.flexion_residual_pairs = 7
     record.sim.qa["strain_p999"][4] = 0.4
     reason = reject_over_qa_bounds(record).reason
-    assert reason.endswith("; at frame 4 the body's thigh overlaps its lower torso (up to 8.4 cm "
-                           "deep in this sequence: linear blend skinning at strong hip "
-                           "flexion, not repaired)")
+    assert reason.endswith("; at frame 4 the body's parts still intersect across a flexed joint "
+                           "(hip or knee; skinning sank them up to 8.4 cm deep in this "
+                           "sequence, and separating them left 7 triangle pairs crossing)")
+    # An overlap the body stage separated is not blamed: only what is left of it.
     other = sf.make_record(1).record
-    other.body.self_collision.groin_overlap_frames = [made.lead_in + 6]
+    other.body.self_collision.flexion_overlap_frames = [made.lead_in + 4]
+    other.body.self_collision.flexion_residual_frames = [made.lead_in + 6]
     other.sim.qa["strain_p999"][4] = 0.4
-    assert "thigh" not in reject_over_qa_bounds(other).reason
+    assert "joint" not in reject_over_qa_bounds(other).reason
 
 
 def test_recipe_qa_policy_is_checked(tmp_path):

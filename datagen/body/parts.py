@@ -122,15 +122,24 @@ SOLVABLE_PAIRS = frozenset(
     | {frozenset({"thigh_l", "thigh_r"})}
 ) - {frozenset({"upperarm_l", "collar_l"}), frozenset({"upperarm_r", "collar_r"})}
 
-# The groin: a thigh against the lower torso. They are skeleton neighbours, so the self-collision
-# repair leaves them alone, but linear blend skinning sinks the front of a strongly flexed thigh
-# centimetres into the belly (a kick's chamber, a squat); the body stage reports where
-# (SelfCollisionReport.groin_*). Triangles closer than GROIN_REST_RADIUS at rest are the skin
-# bending at the hip joint, not an overlap.
-GROIN_PAIRS: tuple[tuple[str, str], ...] = tuple(
-    (thigh, torso) for thigh in ("thigh_l", "thigh_r") for torso in ("pelvis", "spine_lower")
+# Parts joined at a joint that linear blend skinning sinks into each other at strong flexion: a
+# thigh into the lower torso (a kick's chamber, a squat), a calf into its thigh (a deep knee
+# bend). They are skeleton neighbours, so the self-collision repair leaves them alone; the body
+# stage moves both surfaces to a shared contact surface instead (datagen.body.flexion). Each
+# entry is two sides, each one or more parts. Triangles closer than FLEXION_REST_RADIUS at rest
+# are the skin bending at the joint, not an overlap.
+_LOWER_TORSO = ("pelvis", "spine_lower")
+FLEXION_SIDES: tuple[tuple[tuple[str, ...], tuple[str, ...]], ...] = (
+    (_LOWER_TORSO, ("thigh_l",)),
+    (_LOWER_TORSO, ("thigh_r",)),
+    (("thigh_l",), ("shin_l",)),
+    (("thigh_r",), ("shin_r",)),
 )
-GROIN_REST_RADIUS = 0.08  # metres
+# The same as part pairs, for the self-collision detector.
+FLEXION_PAIRS: tuple[tuple[str, str], ...] = tuple(
+    (a, b) for side_a, side_b in FLEXION_SIDES for a in side_a for b in side_b
+)
+FLEXION_REST_RADIUS = 0.08  # metres
 
 # Which part yields in a repair: the first of a pair in this order moves (both thighs share).
 MOVABLE_ORDER = ("forearm_l", "forearm_r", "upperarm_l", "upperarm_r", "thigh_l", "thigh_r")

@@ -8,7 +8,8 @@ import numpy as np
 
 from datagen.body.arm_clearance import clear_arms
 from datagen.body.base import BodyModel
-from datagen.body.parts import GROIN_PAIRS, GROIN_REST_RADIUS, PART_INDEX
+from datagen.body.flexion import separate_flexed_parts
+from datagen.body.parts import FLEXION_PAIRS, FLEXION_REST_RADIUS, PART_INDEX
 from datagen.body.selfcollision import (
     LOCAL_RADIUS,
     SelfCollisionDetector,
@@ -115,14 +116,47 @@ def repair_self_collisions(
     return rep_f, rep_v, rep_o, report
 
 
-def _report_groin_overlap(vertices: np.ndarray, rest: RestBody,
-                          report: SelfCollisionReport) -> None:
-    """Fill the report's groin fields from the final (repaired) vertices."""
-    det = _detector(rest, pairs=GROIN_PAIRS, local_radius=GROIN_REST_RADIUS)
+def separate_flexion(vertices: np.ndarray, rest: RestBody, config: BodyConfig,
+                     report: SelfCollisionReport) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Find where skinning sinks a part into its neighbour across a flexed joint
+    (parts.FLEXION_SIDES), move both surfaces to a shared contact surface in those frames and the
+    frames either side (datagen.body.flexion), and fill the report's flexion fields. Returns the
+    sparse offsets; `vertices` (F, V, 3) is modified in place."""
+    det = _detector(rest, pairs=FLEXION_PAIRS, local_radius=FLEXION_REST_RADIUS)
     contacts = det.detect(vertices)
-    report.groin_overlap_frames = sorted({int(c.frame) for c in contacts})
-    report.groin_overlap_max_extent = max((c.extent for c in contacts), default=0.0)
-    report.groin_overlap_max_depth = max((c.depth for c in contacts), default=0.0)
+    report.flexion_overlap_frames = sorted({int(c.frame) for c in contacts})
+    report.flexion_overlap_max_extent = max((c.extent for c in contacts), default=0.0)
+    report.flexion_overlap_max_depth = max((c.depth for c in contacts), default=0.0)
+    empty = (np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 3), np.float32))
+    if not contacts or config.flexion_gap is None:
+        report.flexion_residual_frames = list(report.flexion_overlap_frames)
+        return empty
+    # The frames either side too: where the surfaces come within the gap but do not yet cross,
+    # so that the correction does not start at full size from one frame to the next.
+    found = np.array(report.flexion_overlap_frames)
+    frames = np.unique(np.clip(np.concatenate([found - 1, found, found + 1]), 0,
+                               len(vertices) - 1))
+    rep_f, rep_v, rep_o = separate_flexed_parts(vertices, rest, frames, config.flexion_gap)
+    residual = det.detect(vertices[found], frames=found)
+    report.flexion_residual_frames = sorted({int(c.frame) for c in residual})
+    report.flexion_residual_pairs = sum(c.n_pairs for c in residual)
+    report.flexion_separated_vertices = len(rep_v)
+    report.flexion_max_offset = float(np.linalg.norm(rep_o, axis=1).max(initial=0.0))
+    return rep_f, rep_v, rep_o
+
+
+def _merge_offsets(*parts: tuple[np.ndarray, np.ndarray, np.ndarray]
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One sparse offset per (frame, vertex), sorted: the sum of every part's offsets there."""
+    frames = np.concatenate([p[0] for p in parts]).astype(np.int64)
+    verts = np.concatenate([p[1] for p in parts]).astype(np.int64)
+    offs = np.concatenate([p[2] for p in parts]).astype(np.float64)
+    if len(frames) == 0:
+        return np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 3), np.float32)
+    keys, inverse = np.unique(np.stack([frames, verts], axis=1), axis=0, return_inverse=True)
+    summed = np.zeros((len(keys), 3))
+    np.add.at(summed, inverse.ravel(), offs)
+    return keys[:, 0].astype(np.int32), keys[:, 1].astype(np.int32), summed.astype(np.float32)
 
 
 def build_body_sequence(
@@ -171,7 +205,8 @@ def build_body_sequence(
         except RejectedSequence as exc:
             last_error = exc
             continue
-        _report_groin_overlap(vertices, rest, report)
+        rep_f, rep_v, rep_o = _merge_offsets(
+            (rep_f, rep_v, rep_o), separate_flexion(vertices, rest, config, report))
         report.arm_clearance_max_deg = float(np.degrees(added.max(initial=0.0)))
         report.arm_clearance_frames = int(np.count_nonzero(added.max(axis=0) > 0))
         report.thinner_retries = attempt

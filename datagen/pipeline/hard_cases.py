@@ -241,10 +241,10 @@ def judge(case: Case, record) -> CaseResult:
         problems.append(f"kinetic energy {res.kinetic_per_kg_max:.1f} J/kg")
     res.passed = not problems
     res.detail = "; ".join(problems) or "finite, strain and penetration within bounds"
-    from datagen.pipeline.stages import escalation_note, groin_overlap_note
+    from datagen.pipeline.stages import escalation_note, flexion_overlap_note
 
     if problems:
-        res.detail += groin_overlap_note(getattr(record, "body", None), worst)
+        res.detail += flexion_overlap_note(getattr(record, "body", None), worst)
     res.detail += escalation_note(sim)
     return res
 

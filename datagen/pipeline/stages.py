@@ -227,26 +227,27 @@ def over_qa_bounds(record: SequenceRecord,
     found = qa.breaches(record.sim.qa, limit)
     if not found:
         return [], ""
-    return found, "; ".join(b.reason for b in found) + groin_overlap_note(
+    return found, "; ".join(b.reason for b in found) + flexion_overlap_note(
         record.body, [b.frame for b in found]) + escalation_note(record.sim)
 
 
-def groin_overlap_note(body: BodySequence | None, frames: list[int]) -> str:
-    """Where one of the output `frames` that broke a bound is one in which the body stage
-    found a thigh sunk into the lower torso (linear blend skinning at strong hip flexion, which
-    it does not repair), say so: the cloth there is caught in the body's own overlap (the
-    fast kick in docs/simulator.md). Empty otherwise."""
+def flexion_overlap_note(body: BodySequence | None, frames: list[int]) -> str:
+    """Where one of the output `frames` that broke a bound is one in which the body's parts
+    still intersect across a flexed joint after the body stage separated them
+    (SelfCollisionReport.flexion_residual_frames), say so: cloth caught in the body's own
+    overlap cannot be outside it. Empty otherwise."""
     report = getattr(body, "self_collision", None)
-    groin = getattr(report, "groin_overlap_frames", None)
-    if not groin:
+    residual = getattr(report, "flexion_residual_frames", None)
+    if not residual:
         return ""
     lead_in = int(body.lead_in_frames)
-    overlapping = {int(f) - lead_in for f in groin}
+    overlapping = {int(f) - lead_in for f in residual}
     frames = sorted({int(f) for f in frames if int(f) in overlapping})
     if not frames:
         return ""
     where = f"frame {frames[0]}" if len(frames) == 1 else (
         "frames " + ", ".join(str(f) for f in frames[:-1]) + f" and {frames[-1]}")
-    return (f"; at {where} the body's thigh overlaps its lower torso (up to "
-            f"{100 * report.groin_overlap_max_depth:.1f} cm deep in this sequence: linear blend "
-            f"skinning at strong hip flexion, not repaired)")
+    return (f"; at {where} the body's parts still intersect across a flexed joint (hip or "
+            f"knee; skinning sank them up to {100 * report.flexion_overlap_max_depth:.1f} cm "
+            f"deep in this sequence, and separating them left "
+            f"{report.flexion_residual_pairs} triangle pairs crossing)")
