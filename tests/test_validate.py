@@ -362,6 +362,35 @@ def test_qa_gate_names_the_bodys_residual_flexion_overlap_at_the_breach_frame():
     assert "joint" not in reject_over_qa_bounds(other).reason
 
 
+def test_qa_gate_judges_cloth_by_the_bodys_volume_where_a_joint_was_flexed():
+    """Where the body stage found skinning sinking parts into each other, the gate also judges
+    depth by the body's volume (qa.buried_share), which the simulator's nearest-triangle series
+    cannot: cloth pushed 10 cm inside the synthetic body (a capped tube of radius 15 cm) in
+    such a frame rejects the sequence, naming the share, the frame and the bound. Outside those
+    frames the volume is not computed (it costs 0.1 s a frame), so the same cloth there passes
+    the gate: the nearest-triangle series, which the gate does read, say nothing."""
+    from datagen.pipeline.stages import reject_over_qa_bounds
+
+    def buried_at(frame: int, flexed: list[int]):
+        made = sf.make_record(2)
+        record = made.record
+        record.body.self_collision.flexion_overlap_frames = [made.lead_in + f for f in flexed]
+        upper = record.sim.vertices["upper"]
+        sunk = np.arange(0, upper.shape[1], 20)  # 5 % of the t-shirt's vertices
+        centre = made.body_vertices[frame].mean(axis=0)
+        upper[frame, sunk, :2] = centre[:2] + 0.05 * (upper[frame, sunk, :2] - centre[:2]) / 0.19
+        return reject_over_qa_bounds(record)
+
+    rejected = buried_at(4, [3, 4, 5])
+    assert rejected.status == "rejected" and rejected.stage == "qa"
+    assert rejected.frames == (4, 4)
+    assert rejected.reason.startswith(
+        "cloth inside the body's volume deeper than its thickness where skinning sank its parts "
+        "into each other (qa/buried_share 0."), rejected.reason
+    assert "at frame 4, bound 0.01)" in rejected.reason
+    assert buried_at(4, [6, 7]).status == "ok"
+
+
 def test_recipe_qa_policy_is_checked(tmp_path):
     from datagen.errors import InputError
     from datagen.recipe import load_recipe

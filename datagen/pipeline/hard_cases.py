@@ -200,6 +200,8 @@ def add_defects(seed: int = 0, count: int = 12):
 
 # -- running and judging -------------------------------------------------------------------------
 def judge(case: Case, record) -> CaseResult:
+    from datagen.pipeline.stages import escalation_note, flexion_overlap_note, record_buried_share
+
     res = CaseResult(case.name, case.expect, record.status, False, "")
     if record.status != "ok":
         res.detail = f"rejected at {record.stage}: {record.reason}"
@@ -221,7 +223,7 @@ def judge(case: Case, record) -> CaseResult:
     res.strain_p999_max = float(qa["strain_p999"].max())
     res.deep_share_max = float(qa["deep_share"].max()) if "deep_share" in qa else 0.0
     res.kinetic_per_kg_max = float(qa["kinetic_energy"].max()) / mass
-    buried = _buried_share(record)
+    buried = record_buried_share(record)
     res.buried_share_max = float(buried.max())
     problems = []
     worst = []  # the frames where a bound broke
@@ -241,25 +243,10 @@ def judge(case: Case, record) -> CaseResult:
         problems.append(f"kinetic energy {res.kinetic_per_kg_max:.1f} J/kg")
     res.passed = not problems
     res.detail = "; ".join(problems) or "finite, strain and penetration within bounds"
-    from datagen.pipeline.stages import escalation_note, flexion_overlap_note
-
     if problems:
         res.detail += flexion_overlap_note(getattr(record, "body", None), worst)
     res.detail += escalation_note(sim)
     return res
-
-
-def _buried_share(record) -> np.ndarray:
-    """qa.buried_share for a finished record: every garment's vertices at the output frames
-    against the whole body (all its triangles, the parts the collider leaves out included)."""
-    from datagen.qa import buried_share
-    from datagen.sim.fabrics import get_fabric
-
-    sim, body = record.sim, record.body
-    cloth = np.concatenate([sim.vertices[g.name] for g in record.garments], axis=1)
-    thickness = np.concatenate([np.full(len(g.vertices), get_fabric(g.fabric).thickness)
-                                for g in record.garments])
-    return buried_share(cloth, thickness, body.vertices[body.lead_in_frames:], body.rest.faces)
 
 
 def _cloth_mass(record) -> float:
