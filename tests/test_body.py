@@ -327,6 +327,7 @@ def test_flexed_hip_and_knee_are_separated_at_a_shared_contact_surface(body_mode
     # flexion_gap null leaves the overlap as skinning made it, and says so.
     left = build("kick", {"height": 1.0}, 45, BodyConfig(flexion_gap=None)).self_collision
     assert left.flexion_residual_frames == found and left.flexion_separated_vertices == 0
+    assert left.flexion_residual_pairs == pairs_before
     walk = build("walk", {}, 45).self_collision
     assert walk.flexion_overlap_frames == [] and walk.flexion_separated_vertices == 0
 

@@ -130,6 +130,7 @@ def separate_flexion(vertices: np.ndarray, rest: RestBody, config: BodyConfig,
     empty = (np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 3), np.float32))
     if not contacts or config.flexion_gap is None:
         report.flexion_residual_frames = list(report.flexion_overlap_frames)
+        report.flexion_residual_pairs = sum(c.n_pairs for c in contacts)
         return empty
     # The frames either side too: where the surfaces come within the gap but do not yet cross,
     # so that the correction does not start at full size from one frame to the next.
