@@ -65,8 +65,12 @@ def _timed_sequence(recipe: str, index: int) -> dict:
     return {"index": index, "seconds": seconds, "frames": record.spec.motion.frames,
             "status": record.status, "escalated": bool(rep.get("escalated_from")),
             "retries": int(rep.get("retries", 0)),
-            "garments": len(record.garments),
-            "vertices": sum(len(g.vertices) for g in record.garments),
+            # A record rejected after simulation (the QA gate) keeps no garments: count them
+            # from its spec (pieces sewn into one garment share its name), vertices unknown.
+            "garments": (len(record.garments) if record.garments is not None
+                         else len({g.name for g in record.spec.outfit.garments})),
+            "vertices": (sum(len(g.vertices) for g in record.garments)
+                         if record.garments is not None else None),
             "note": f"{record.reason or 'ok'}{escalation_note(record.sim)}"}
 
 
@@ -114,7 +118,7 @@ def projection_lines(sample: dict) -> list[str]:
     esc_share = sum(r["seconds"] for r in escalated) / sum(times)
     by_garments = Counter(r["garments"] for r in runs)
     frames = sorted({r["frames"] for r in runs})
-    vertices = [r["vertices"] for r in runs]
+    vertices = [r["vertices"] for r in runs if r["vertices"] is not None] or [0]
     lines = [
         f"### Projected cost of `pipelines/cloth3d.yaml` ({n_total} sequences)\n",
         "| measure | value |\n|---|---|",
