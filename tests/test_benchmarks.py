@@ -428,3 +428,10 @@ def test_the_dataset_projection_gives_the_mean_with_its_t_interval_and_the_escal
     assert ("2 with 1 garment, 1 with 2 garments (5,000-10,000 garment vertices); 300 frames |"
             in text)
     assert "- sequence 2: ok, 30 s (ok; simulated again at reference)" in text
+    # A sequence the QA gate rejected keeps no garments: its vertices are unknown (None) and
+    # the vertex range comes from the finished ones.
+    rejected = dict(run(3, 20.0, status="rejected"), vertices=None)
+    text = "\n".join(projection_lines({"sequences": 3600, "runs": [
+        run(0, 10.0), run(1, 20.0), rejected]}))
+    assert "3: 2 finished, 1 rejected; " in text
+    assert "(5,000-10,000 garment vertices)" in text
