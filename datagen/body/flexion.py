@@ -49,7 +49,6 @@ class FlexionSeparator:
         self.gap = float(gap)
         self.faces = np.asarray(rest.faces, dtype=np.int64)
         labels = np.asarray(rest.part_labels)
-        self.labels = labels
         fl = labels[self.faces]
         # A triangle belongs to the part most of its vertices belong to (as in selfcollision).
         self.tri_part = np.where(fl[:, 1] == fl[:, 2], fl[:, 1], fl[:, 0])
@@ -70,6 +69,9 @@ class FlexionSeparator:
              np.array(sorted(other)))
             for own, other in partners.items()
         ]
+        # Each group's partner vertices, whose posed box bounds the candidates (fixed labels).
+        self.partner_vertices = [np.flatnonzero(np.isin(labels, other))
+                                 for _, _, other in self.groups]
         # Vertex normals as one sparse product: vertex-by-triangle incidence.
         rows = self.faces.ravel()
         cols = np.repeat(np.arange(len(self.faces)), 3)
@@ -105,8 +107,8 @@ class FlexionSeparator:
         c = np.zeros_like(v)
         # Only vertices inside their partners' box (grown by the gap) can need a correction.
         candidates = []
-        for own, _, partners in self.groups:
-            pv = v[np.isin(self.labels, partners)]
+        for (own, _, _), partner_vertices in zip(self.groups, self.partner_vertices, strict=True):
+            pv = v[partner_vertices]
             lo, hi = pv.min(axis=0) - gap, pv.max(axis=0) + gap
             candidates.append(own[np.all((v[own] >= lo) & (v[own] <= hi), axis=1)])
         union = np.unique(np.concatenate(candidates))
