@@ -5,6 +5,9 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 PIPELINE ?= pipelines/default.yaml
 OUT ?= data
+# Test workers (pytest-xdist): the tests are single-threaded, so one per core halves the suite on
+# 2 cores (15 min against 27, 2026-11-30).
+TEST_WORKERS ?= auto
 
 .PHONY: install dataset test lint bench bench-quick clean
 
@@ -28,7 +31,7 @@ lint: install
 	$(VENV)/bin/ruff check datagen models tests benchmarks templates
 
 test: lint
-	$(VENV)/bin/pytest -q
+	$(VENV)/bin/pytest -q -n $(TEST_WORKERS) --dist worksteal
 
 bench: install
 	$(PY) -m benchmarks.run_all

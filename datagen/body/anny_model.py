@@ -14,7 +14,8 @@ map (docs/architecture.md, "Retargeting"):
    canonical joints' forward-kinematics positions.
 
 Anny's first instantiation builds a cache (~1 minute, in ANNY_CACHE_DIR or ~/.cache/anny); one
-model is built per process and reused.
+model is built per process and reused. Processes that start at once on a fresh machine (a dataset
+run's workers, the test suite's) take turns at it under a file lock in that folder.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import functools
 import threading
 
 import numpy as np
+from filelock import FileLock
 
 from datagen.body.base import PosedBody, check_gender
 from datagen.body.parts import JOINT_TO_PART, PART_NAMES
@@ -132,8 +134,13 @@ _MODEL_LOCK = threading.Lock()
 def _anny_model():
     """The Anny model, built once per process (the first build caches data on disk)."""
     import anny  # imported lazily: it pulls torch and takes a moment
+    from anny.paths import get_anny_cache_path
 
-    with _MODEL_LOCK:
+    # Anny checks for its cache file and then writes it in place, without a lock: a second
+    # process starting meanwhile would build it again over the first's or read it half-written.
+    cache = get_anny_cache_path()
+    cache.mkdir(parents=True, exist_ok=True)
+    with _MODEL_LOCK, FileLock(cache / "datagen-build.lock"):
         return anny.Anny(topology=ANNY_TOPOLOGY, skinning_method="lbs")
 
 
