@@ -1496,6 +1496,11 @@ def test_an_effects_request_changes_the_scene_rules_by_name():
     assert not resolve_effects("auto,-body_collision,-friction", skirt).body_collision
     with pytest.raises(InputError, match=r"with body_collision, got 'friction'"):
         resolve_effects("gravity,friction", skirt)
+    # A name twice is refused, whichever the order would have kept.
+    with pytest.raises(InputError, match=r"each effect named once, got 'stretch'"):
+        resolve_effects("stretch,gravity,stretch", skirt)
+    with pytest.raises(InputError, match=r"each effect named once, got '-wind'"):
+        resolve_effects("auto,+wind,-wind", skirt)
 
 
 def test_simulate_rejects_a_bad_effects_request_before_any_work(tmp_path, monkeypatch):

@@ -92,6 +92,12 @@ def split_effects_request(request: str | tuple[str, ...] | list[str]) -> tuple[s
     no source: callers that read a file add theirs) naming the first bad item."""
     names = request.split(",") if isinstance(request, str) else list(request)
     names = [n.strip() for n in names if n.strip()]
+    # A name given twice ('stretch,stretch', 'auto,+wind,-wind') is a slip whose intent the
+    # order would decide silently.
+    named = [n.lstrip("+-") for n in names]
+    twice = [n for k, n in enumerate(names) if named[k] in named[:k]]
+    if twice:
+        raise InputError(None, "effects", "each effect named once", twice[0])
     if names and names[0] in ("auto", "all"):
         bad = [n for n in names[1:] if n[:1] not in "+-" or n[1:] not in EFFECT_NAMES]
         if bad:
