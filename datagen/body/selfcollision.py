@@ -57,7 +57,8 @@ class Contact:
 
 
 class SelfCollisionDetector:
-    """Finds body self-intersections. Built once per body topology (faces, part labels)."""
+    """Finds body self-intersections in one subject's poses (its rest pose decides which triangles
+    are local to each other)."""
 
     def __init__(
         self,

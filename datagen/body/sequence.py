@@ -22,8 +22,6 @@ from datagen.recipe import BodyConfig
 from datagen.spec import SubjectSpec
 from datagen.types import BodySequence, Motion, RestBody, SelfCollisionReport
 
-_DETECTORS: dict[tuple, SelfCollisionDetector] = {}
-
 
 def shape_vector(model: BodyModel, subject: SubjectSpec) -> np.ndarray:
     """The subject's shape parameters in the model's order; every name must be known."""
@@ -47,15 +45,12 @@ def shape_vector(model: BodyModel, subject: SubjectSpec) -> np.ndarray:
 def _detector(rest: RestBody, ignore: frozenset[str] = frozenset(),
               pairs: tuple[tuple[str, str], ...] | None = None,
               local_radius: float = LOCAL_RADIUS) -> SelfCollisionDetector:
-    # Keyed by topology; rest positions only decide which triangles are "local" to each other,
-    # which the shape barely changes, so one detector serves all subjects of a model.
-    key = (rest.model, rest.faces.shape, ignore, pairs, local_radius)
-    det = _DETECTORS.get(key)
-    if det is None:
-        det = SelfCollisionDetector(rest.faces, rest.part_labels, rest.vertices, ignore,
-                                    pairs=pairs, local_radius=local_radius)
-        _DETECTORS[key] = det
-    return det
+    # From this subject's own rest pose, every time (5 ms): which triangles count as "local" to
+    # each other depends on it. One detector per topology, from the first subject a process
+    # built, made a sequence's contacts, repairs and report depend on what that process had
+    # built before (a 1 m kick read 1105 flexion pairs after another subject, 1160 alone).
+    return SelfCollisionDetector(rest.faces, rest.part_labels, rest.vertices, ignore,
+                                 pairs=pairs, local_radius=local_radius)
 
 
 def repair_self_collisions(
