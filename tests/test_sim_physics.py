@@ -192,14 +192,12 @@ def test_a_limb_at_10_m_s_does_not_tunnel_through_its_trouser_leg():
     assert too_fast > 0  # the check sees fabric that passed through the limb
 
 
-def _block_over_sheet(parts: bool, speed: float, fold: bool = False
-                      ) -> tuple[list[int], object]:
+def _block_over_sheet(parts: bool, speed: float) -> tuple[list[int], object]:
     """A 12 cm cotton sheet lying on a plate (part 0), and a block (part 1, 5 x 30 x 6 cm) that
     overlaps the plate by 1 cm, as a forearm folded onto the upper arm overlaps it, sliding
     across it at `speed` (m/s). Per frame, how many sheet vertices are inside the block deeper
     than the thickness; and the run. `parts`: whether the collider knows which part each face
-    is of; `fold`: whether the two fold onto each other in every frame (the fold guard's
-    table, ColliderTrack.fold_frames)."""
+    is of."""
     import trimesh
 
     plate = trimesh.creation.box(extents=(0.5, 0.5, 0.02))
@@ -212,9 +210,7 @@ def _block_over_sheet(parts: bool, speed: float, fold: bool = False
     track = ColliderTrack(
         np.array([np.concatenate([pv, bv + (c, 0.0, 0.02)]) for c in centres]),
         np.concatenate([pf, bf + len(pv)]).astype(np.int32), np.ones(len(pf) + len(bf), bool),
-        face_parts=np.r_[np.zeros(len(pf), int), np.ones(len(bf), int)] if parts else None,
-        fold_frames=frozenset(range(frames + 1)) if fold else frozenset(),
-        fold_partners=np.r_[[0b10, 0b01], np.zeros(28, int)].astype(np.int32) if fold else None)
+        face_parts=np.r_[np.zeros(len(pf), int), np.ones(len(bf), int)] if parts else None)
     sheet = grid_sheet(24, 0.12, 0.006)
     result = simulate([sheet], track, SimOptions(settle_seconds=0.0, strain_refinements=0))
     depth = FABRICS["cotton"].thickness
@@ -244,41 +240,6 @@ def test_cloth_on_one_body_part_is_pushed_by_another_that_folds_onto_it():
     blind, run = _block_over_sheet(parts=False, speed=0.25)
     assert max(blind) > 100  # without parts the check sees the sheet swallowed...
     assert run.qa["deep_share"].max() == 0.0  # ...where the QA sees none of it
-
-
-@pytest.mark.parametrize("speed", [1.0, 2.0])
-def test_a_folding_part_arriving_from_beyond_a_cell_between_full_searches_pushes_the_cloth(
-        speed):
-    """The same block at 1 and 2 m/s covers more than a grid cell (25 mm) a frame, so at its
-    last full search the sheet had no facing surface of another part within its cell: 200 and
-    225 of the 625 vertices ended inside the block (measured without the fold guard), and at
-    2 m/s the sheet was left behind it. Where the two fold onto each other (the track's fold
-    frames and partners, as the body stage's flexion frames give the hip and knee), each such
-    vertex keeps a bound on how near the folding part can come during the frame
-    (kernels.fold_threat), proved again as it runs out, and is searched before it can pass."""
-    swallowed, result = _block_over_sheet(parts=True, speed=speed, fold=True)
-    assert max(swallowed) == 0
-    assert result.vertices["sheet"][-1][:, 0].min() > 0.2 + 0.025
-
-
-def test_the_fold_guard_rests_outside_a_fold():
-    """The fold guard runs only where the track says the parts fold onto each other: the same
-    block at 1 m/s without fold frames passes over part of the sheet, as before the guard (the
-    gap that kernels.nearest_one's docstring names), so the fold table is what closes it."""
-    swallowed, _ = _block_over_sheet(parts=True, speed=1.0)
-    assert max(swallowed) > 100
-
-
-def test_fold_partners_are_the_parts_across_a_flexing_joint():
-    from datagen.body.parts import PART_INDEX, fold_partner_bits
-
-    bits = fold_partner_bits(30)
-    thigh = (1 << PART_INDEX["pelvis"]) | (1 << PART_INDEX["spine_lower"]) \
-        | (1 << PART_INDEX["shin_l"])
-    assert bits[PART_INDEX["thigh_l"]] == thigh
-    assert bits[PART_INDEX["shin_r"]] == 1 << PART_INDEX["thigh_r"]
-    assert bits[PART_INDEX["pelvis"]] == (1 << PART_INDEX["thigh_l"]) | (1 << PART_INDEX["thigh_r"])
-    assert bits[PART_INDEX["chest"]] == 0 and bits[PART_INDEX["forearm_l"]] == 0
 
 
 def _trampoline_centre_z(outer: bool, inner_fabric: str = "cotton",

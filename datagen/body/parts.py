@@ -141,17 +141,5 @@ FLEXION_PAIRS: tuple[tuple[str, str], ...] = tuple(
 )
 FLEXION_REST_RADIUS = 0.08  # metres
 
-
-def fold_partner_bits(n_bits: int) -> np.ndarray:
-    """Per part index, the bits (1 << index) of the parts that fold onto it across a joint
-    (FLEXION_SIDES, both ways): the cloth simulator's fold table (datagen.sim.kernels)."""
-    bits = np.zeros(n_bits, np.int32)
-    for side_a, side_b in FLEXION_SIDES:
-        for a in side_a:
-            for b in side_b:
-                bits[PART_INDEX[a]] |= 1 << PART_INDEX[b]
-                bits[PART_INDEX[b]] |= 1 << PART_INDEX[a]
-    return bits
-
 # Which part yields in a repair: the first of a pair in this order moves (both thighs share).
 MOVABLE_ORDER = ("forearm_l", "forearm_r", "upperarm_l", "upperarm_r", "thigh_l", "thigh_r")

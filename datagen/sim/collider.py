@@ -112,33 +112,21 @@ class BodyCollider:
             boxes[:, K.T_PART] = face_parts
         self.tbox.from_numpy(boxes)
         self.shift_np = np.zeros(3)
-        # The frame's fold table (set_frames): per part, the bits of the parts folding onto it.
-        self.fold_np = np.zeros(K.PART_BITS, np.int32)
-        self.fold_parts = ti.ndarray(ti.i32, K.PART_BITS)
-        self.fold_parts.from_numpy(self.fold_np)
         self._n_cells_alloc = 0
         self.counts = self.starts = self.items = None
         self._items_alloc = 0
         self._prev = None
         self.grid_tag = 0  # this collider's grid's number (kernels.nearest_one's frame guards)
 
-    def set_frames(self, v0: np.ndarray, v1: np.ndarray, fold: np.ndarray | None = None) -> None:
+    def set_frames(self, v0: np.ndarray, v1: np.ndarray) -> None:
         """Body positions at the start and end of the coming frame (interpolated in between).
         Consecutive frames share a pose: when v0 is the previous call's v1, its arrays are
-        reused instead of uploaded again. `fold`: the frame's fold table (PART_BITS ints: per
-        part, the bits of the parts that fold onto it across a joint; kernels.fold_threat),
-        None or zeros where nothing folds."""
+        reused instead of uploaded again."""
         v0 = np.asarray(v0, dtype=NP_REAL)
         v1 = np.asarray(v1, dtype=NP_REAL)
         prev = getattr(self, "v1_np", None)
-        fold = np.zeros(K.PART_BITS, np.int32) if fold is None else np.asarray(fold, np.int32)
-        fold_changed = not np.array_equal(fold, self.fold_np)
-        if fold_changed:
-            self.fold_np = fold.copy()
-            self.fold_parts.from_numpy(self.fold_np)
         if (
-            not fold_changed
-            and getattr(self, "_at_rest", False)
+            getattr(self, "_at_rest", False)
             and np.array_equal(prev, v0)
             and np.array_equal(v0, v1)
         ):
@@ -221,8 +209,7 @@ class BodyCollider:
             False,
         )
         K.grid_prefix(self.counts, self.starts, n_cells, self.block_starts)
-        # The lists, then each cell's part mask and the fold table (K.grid_part_masks).
-        total = int(self.starts[n_cells]) + n_cells + K.PART_BITS
+        total = int(self.starts[n_cells])
         if total > self._items_alloc:
             self._items_alloc = int(total * 1.5) + 16
             self.items = ti.ndarray(ti.i32, self._items_alloc)
@@ -238,7 +225,6 @@ class BodyCollider:
             False,
         )
         K.grid_sort(self.starts, self.items, n_cells)
-        K.grid_part_masks(self.starts, self.items, self.tbox, n_cells, self.fold_parts)
         # grid_fill used counts as cursors; they must be zero for the next frame's counting.
         self.counts.fill(0)
 
@@ -250,11 +236,11 @@ class BodyCollider:
             self.items = ti.ndarray(ti.i32, self._items_alloc)
         args = (self.b0, self.b1, self.faces, self.mask, self.origin, self.inv_cell, self.dims,
                 n_cells, self.counts, self.relative_travel, self.tbox, self.starts)
-        total = K.grid_build_serial(*args, self.items, self.fold_parts)
+        total = K.grid_build_serial(*args, self.items)
         if total > self._items_alloc:
             self._items_alloc = int(total * 1.5) + 16
             self.items = ti.ndarray(ti.i32, self._items_alloc)
-            K.grid_build_serial(*args, self.items, self.fold_parts)
+            K.grid_build_serial(*args, self.items)
 
     def signed_distance_tracked(self, x, tri) -> np.ndarray:
         """Signed distance of the cloth vertices (device arrays) to the triangles they track, at

@@ -32,14 +32,6 @@ OTHER_SURFACE_ZONE = 0.008
 # G_OTHER's distance part when no facing surface of another part was within the searched cell
 # (a cell, GRID_CELL, is far below it: the guard packs the distance after the part's integer).
 OTHER_NONE = 0.75
-# Over a frame a facing surface can turn into place: the fold guard's proof that no folding
-# part comes near a tracked vertex within a frame (fold_threat) counts triangles within 30
-# degrees of facing too, a margin for a joint closing at 10 rad/s (19 degrees a frame at 30 fps).
-FACING_COS_FRAME = 0.866
-# Bits of a grid cell's part mask and of the fold table (grid_part_masks): part p is bit
-# p % PART_BITS. The fold table, after the cells' masks in `items`, holds per part the bits of
-# the parts that fold onto it in the current frame (none outside a fold: the guard is off).
-PART_BITS = 30
 V8 = ti.types.ndarray(dtype=GUARD, ndim=1)
 F1 = ti.types.ndarray(dtype=REAL, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -1377,15 +1369,14 @@ def grid_build_serial(
     tbox: V8,
     starts: I1,
     items: I1,
-    fold_parts: I1,
 ) -> ti.i32:
     """grid_count, grid_prefix and grid_fill in one launch, for serial backends (their seven
     launches and a read of the total cost about 0.8 ms a frame in Taichi's Python there; this one
     0.1-0.2 ms for the tube's cylinder). The same grid to the last entry: triangles filed in
     descending order, each cell filled downwards from its end, list each cell in ascending
-    order as the serial grid_fill does. Returns the length of `items` it needs (the entries,
-    then a part mask per cell and the fold table: grid_part_masks); where `items` is too short
-    nothing is filed (the caller grows it and calls again). `counts` end at zero either way."""
+    order as the serial grid_fill does. Returns the number of entries; where `items` is too
+    short for them nothing is filed (the caller grows it and calls again). `counts` end at zero
+    either way."""
     count_triangles(b0, b1, faces, mask, origin, inv_cell, dims, counts, travel, tbox, True)
     run = 0
     ti.loop_config(serialize=True)
@@ -1393,7 +1384,7 @@ def grid_build_serial(
         starts[c] = run
         run += counts[c]
     starts[n_cells] = run
-    if run + n_cells + PART_BITS > items.shape[0]:
+    if run > items.shape[0]:
         for c in range(n_cells):
             counts[c] = 0
     else:
@@ -1402,56 +1393,7 @@ def grid_build_serial(
             t = n_faces - 1 - m
             if mask[t] != 0:
                 file_triangle(t, tbox, origin, inv_cell, dims, counts, starts, items, -1)
-        part_masks(starts, items, tbox, n_cells, fold_parts)
-    return run + n_cells + PART_BITS
-
-
-@ti.func
-def part_masks(starts: I1, items: I1, tbox: V8, n_cells: ti.i32, fold_parts: I1):
-    """Each cell's part mask after the lists, then the fold table (grid_part_masks)."""
-    total = starts[n_cells]
-    for p in range(PART_BITS):
-        items[total + n_cells + p] = fold_parts[p]
-    for c in range(n_cells):
-        bits = 0
-        for q in range(starts[c], starts[c + 1]):
-            part = tbox[items[q]][T_PART]
-            if part >= 0.0:
-                bits |= 1 << (ti.cast(part, ti.i32) % PART_BITS)
-        items[total + c] = bits
-
-
-@ti.kernel
-def grid_part_masks(starts: I1, items: I1, tbox: V8, n_cells: ti.i32, fold_parts: I1):
-    """Which body parts each cell lists a triangle of, one bit per part (PART_BITS), kept in
-    `items` after the lists (items[starts[n_cells] + c]), and after them the frame's fold table
-    (`fold_parts`, PART_BITS entries): the fold guard (fold_threat) skips the cells that list
-    no part folding onto the vertex's own, without scanning their triangles. Colliders without
-    parts have empty masks. The table rides in `items` because the fused xpbd_frame kernel has
-    no argument left."""
-    part_masks(starts, items, tbox, n_cells, fold_parts)
-
-
-@ti.func
-def grid_cells(dims: ti.math.ivec3) -> ti.i32:
-    """How many cells (or a hashed grid's buckets: grid_cell) a grid has."""
-    n_cells = dims[0] * dims[1] * dims[2]
-    if dims[0] == 0:
-        n_cells = dims[1] + 1
-    return n_cells
-
-
-@ti.func
-def cell_part_mask(cid: ti.i32, dims: ti.math.ivec3, starts: I1, items: I1) -> ti.i32:
-    """The part mask of grid cell cid (grid_part_masks)."""
-    return items[starts[grid_cells(dims)] + cid]
-
-
-@ti.func
-def fold_bits(part: REAL, dims: ti.math.ivec3, starts: I1, items: I1) -> ti.i32:
-    """The part bits of what folds onto `part` in this frame (grid_part_masks' fold table)."""
-    n_cells = grid_cells(dims)
-    return items[starts[n_cells] + n_cells + ti.cast(part, ti.i32) % PART_BITS]
+    return run
 
 
 @ti.func
@@ -1543,18 +1485,10 @@ def nearest_one(
     distance less OTHER_SURFACE_ZONE as the budget, no longer show it farther than the zone,
     and at once when its triangle is now of another part (a walk across the joint), so the
     vertex tracks the other surface before it can pass. A vertex with no facing surface within
-    the cell is not guarded in general: it waits for the frames' full search
-    (SimOptions.search_every), and a surface that comes from beyond the cell faster than that
-    can pass it. Where the body folds across a joint (the frame's fold table, grid_part_masks:
-    the body stage's flexion frames, the hip and knee), it keeps a bound for the frame instead
-    (G_SPEED < 0): how near a part folding onto its own can come during the rest of the frame
-    (fold_threat). The bound holds while the vertex stays within it, less the zone, of its
-    track (where it was proved, moved with the body's mean motion), and on the frame's grid;
-    then it is proved again, and the vertex searched only where a facing surface is within
-    reach or may come within the zone. So the kick's thigh closing over trousers that track the
-    calf meets a searched vertex. Guarding every frame cost a walking body 15-25 % (the
-    proofs renewed each frame for every vertex near a joint); outside a fold the table is
-    empty and nothing is proved.
+    the cell is not guarded: it waits for the frames' full search (SimOptions.search_every),
+    and a surface that comes from beyond the cell faster than that can still pass it (guarding
+    those too, against the odometer or the local bound, searched a walking t-shirt's tracked
+    vertices again several times a frame: 50 % more time).
     """
     clear = False  # an untracked vertex provably far: not searched
     again = False  # a tracked vertex that another part may have come near: searched
@@ -1570,28 +1504,11 @@ def nearest_one(
             budget = other - OTHER_SURFACE_ZONE
             if part - 1.0 != tbox[tri[i]][T_PART]:
                 budget = -1.0  # the walk crossed to another part: what faces it is unknown
-            if budget < 0.0:
-                again = True
-            elif g[G_SPEED] >= 0.0:
-                # A facing surface at `other` when searched: the searched cells must hold what
-                # can come within the budget, so the vertex stays within max_dist - budget of
-                # where it was searched.
+            if other < OTHER_NONE or budget < 0.0:
+                # The searched cells must hold what can come within the budget: the vertex
+                # stays within max_dist - budget of where it was searched.
                 again = not guard_holds(x[i], g, budget, max_dist - budget, odo, grid_tag,
                                         s_frame, shift)
-            elif fold_bits(part - 1.0, dims, starts, items) != 0 and (
-                    g[G_TAG] != grid_tag or track_drift(x[i], g, s_frame, shift)
-                    > ti.min(budget, 1.0 / inv_cell - OTHER_SURFACE_ZONE)):
-                # In a fold, the bound for the frame (fold_threat) has run out, or was proved
-                # on another frame's grid: proved again where the vertex is; searched where a
-                # folding surface faces it within reach or may come within the zone.
-                p = x[i]
-                threat = fold_threat(p, tri[i], part - 1.0, b0, b1, faces, origin, inv_cell,
-                                     dims, starts, items, s, max_dist, tbox, s_frame, shift)
-                if threat[1] >= 0.0 or threat[0] < OTHER_SURFACE_ZONE:
-                    again = True
-                else:
-                    guard[i] = GUARD(p[0], p[1], p[2], odo, grid_tag, s_frame, -1.0,
-                                     part + threat[0])
     searched = which == SEARCH_ALL or (which == SEARCH_UNTRACKED) == (tri[i] < 0) or again
     if w[i] > 0.0 and searched and not clear:
         p = x[i]
@@ -1648,16 +1565,7 @@ def nearest_one(
             part = tbox[best_t][T_PART]
             other = other_surface(p, best_t, part, b0, b1, faces, origin, inv_cell, dims,
                                   starts, items, s, max_dist, tbox)
-            speed = fastest
-            if other >= OTHER_NONE:
-                # No facing surface within reach: the fold guard's kind, proved now where a
-                # part folds onto this one, else at the first frame that has a fold.
-                speed = -1.0
-                if fold_bits(part, dims, starts, items) != 0:
-                    other = fold_threat(p, best_t, part, b0, b1, faces, origin, inv_cell,
-                                        dims, starts, items, s, max_dist, tbox, s_frame,
-                                        shift)[0]
-            guard[i] = GUARD(p[0], p[1], p[2], odo, grid_tag, s_frame, speed,
+            guard[i] = GUARD(p[0], p[1], p[2], odo, grid_tag, s_frame, fastest,
                              1.0 + part + other)
 
 
@@ -1713,85 +1621,6 @@ def other_surface(p: vec3, best_t: ti.i32, part: REAL, b0: V3, b1: V3, faces: I3
     found = ti.cast(OTHER_NONE, REAL)
     if best < reach * reach:
         found = ti.sqrt(best)
-    return found
-
-
-@ti.func
-def track_box(p: vec3, s_frame: REAL, shift: vec3) -> ti.types.matrix(2, 3, REAL):
-    """The box of p's track for the rest of the frame: from p, moved with the body's mean
-    motion (rows: low and high corners)."""
-    end = p + shift * ti.max(1.0 - s_frame, 0.0)
-    return ti.Matrix.rows([ti.min(p, end), ti.max(p, end)])
-
-
-@ti.func
-def track_drift(p: vec3, g: GUARD, s_frame: REAL, shift: vec3) -> REAL:
-    """How far p is from the track of the place guard g was proved at (track_box)."""
-    return (p - vec3(g[0], g[1], g[2]) - shift * (s_frame - g[G_TIME])).norm()
-
-
-@ti.func
-def fold_threat(p: vec3, best_t: ti.i32, part: REAL, b0: V3, b1: V3, faces: I3,
-                origin: vec3, inv_cell: REAL, dims: ti.math.ivec3, starts: I1, items: I1,
-                s: REAL, reach: REAL, tbox: V8, s_frame: REAL, shift: vec3) -> ti.math.vec2:
-    """What the parts folding onto `part` in this frame (fold_bits) threaten at p, tracking
-    triangle best_t, as (distance, kind). Kind 1: the nearest of their triangles that faces
-    best_t (FACING_COS) is within `reach`, at that distance. Else kind -1 and a bound on how
-    near any of their triangles within 30 degrees of facing it (FACING_COS_FRAME: a joint can
-    close that much within a frame) can come, for the rest of the frame, to p's track moved by
-    no more than the bound (track_box): the larger of its box swept over the frame against the
-    track's, and its distance now less its travel relative to the mean motion (tbox) in the
-    rest of the frame; OTHER_NONE where none comes within a cell. The cells scanned are those
-    within a cell of the track (they hold every triangle whose swept box comes that near) that
-    list a folding part (cell_part_mask)."""
-    f = faces[best_t]
-    a = lerp3(b0[f[0]], b1[f[0]], s)
-    nb = (lerp3(b0[f[1]], b1[f[1]], s) - a).cross(lerp3(b0[f[2]], b1[f[2]], s) - a)
-    nbl = nb.norm()
-    folding = fold_bits(part, dims, starts, items)
-    best = reach * reach
-    near = ti.min(reach, 1.0 / inv_cell) ** 2
-    best_frame = near
-    frame_bound = False
-    box = track_box(p, s_frame, shift)
-    lo = vec3(box[0, 0], box[0, 1], box[0, 2])
-    hi = vec3(box[1, 0], box[1, 1], box[1, 2])
-    rest = ti.max(1.0 - s_frame, 0.0)
-    c0 = ti.cast(ti.floor((lo - origin) * inv_cell), ti.i32) - 1
-    n = ti.cast(ti.floor((hi - origin) * inv_cell), ti.i32) + 2 - c0
-    for k in range(n[0] * n[1] * n[2]):
-        cid = grid_cell(c0 + ti.math.ivec3(k // (n[1] * n[2]), (k // n[2]) % n[1], k % n[2]),
-                        dims)
-        if cid >= 0 and (cell_part_mask(cid, dims, starts, items) & folding) != 0:
-            for q in range(starts[cid], starts[cid + 1]):
-                t = items[q]
-                tb = tbox[t]
-                if tb[T_PART] >= 0.0 and (
-                        folding & (1 << (ti.cast(tb[T_PART], ti.i32) % PART_BITS))) != 0:
-                    tlo = vec3(tb[0], tb[1], tb[2])
-                    thi = vec3(tb[3], tb[4], tb[5])
-                    d2 = ti.max(tlo - p, 0.0, p - thi).norm_sqr()
-                    d2t = ti.max(tlo - hi, 0.0, lo - thi).norm_sqr()
-                    if d2 < best or d2t < near:
-                        g = faces[t]
-                        ta = lerp3(b0[g[0]], b1[g[0]], s)
-                        tb_ = lerp3(b0[g[1]], b1[g[1]], s)
-                        tc = lerp3(b0[g[2]], b1[g[2]], s)
-                        nt = (tb_ - ta).cross(tc - ta)
-                        facing = nt.dot(nb)
-                        ntl = nt.norm() * nbl
-                        now2 = closest_on_triangle(p, ta, tb_, tc)[3]
-                        if facing < FACING_COS * ntl and d2 < best:
-                            best = ti.min(best, now2)
-                        if facing < FACING_COS_FRAME * ntl and d2t < near:
-                            frame_bound = True
-                            bound = ti.max(ti.sqrt(d2t), ti.sqrt(now2) - tb[6] * rest)
-                            best_frame = ti.min(best_frame, bound * bound)
-    found = ti.math.vec2(OTHER_NONE, -1.0)
-    if best < reach * reach:
-        found = ti.math.vec2(ti.sqrt(best), 1.0)
-    elif frame_bound:
-        found = ti.math.vec2(ti.sqrt(ti.max(best_frame, 0.0)), -1.0)
     return found
 
 

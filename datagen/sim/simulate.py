@@ -16,7 +16,6 @@ import numpy as np
 
 from datagen.errors import InputError, RejectedSequence
 from datagen.sim import backend
-from datagen.sim import kernels as K
 from datagen.sim.collider import BodyCollider
 from datagen.sim.effects import Effects, SceneContent, resolve_effects
 from datagen.sim.fabrics import Fabric, get_fabric
@@ -74,10 +73,6 @@ SPEED_LIMIT = 15.0  # m/s: a cloth vertex faster than this and 3x the body's fas
 # run of a hanging sheet at too few substeps went from 0.0007 to 0.37 J in one frame, all of its
 # vertices at 5-10 m/s, which the absolute guards let through.
 ENERGY_SLACK = 2.0
-# Frames before a fold (ColliderTrack.fold_frames) in which its guard already runs: the parts
-# close in before skinning sinks them into each other. The fast kick needed none (measured
-# 2026-11-30: the same 0.074 % buried with 0 and with 5); two for folds that close faster.
-FOLD_LEAD_FRAMES = 2
 ENERGY_FLOOR_SPEED = 0.1  # m/s
 
 
@@ -333,11 +328,6 @@ class ColliderTrack:
     lead_in_frames: int = 0
     # (T,) each face's body part, or None for a collider that is one surface (BodyCollider)
     face_parts: np.ndarray | None = None
-    # Frames in which the body folds across a joint (a BodySequence's flexion overlaps: the hip
-    # and knee), and per part the bits of the parts that fold onto it (kernels.PART_BITS
-    # entries): in and just before those frames the fold guard runs (kernels.fold_threat).
-    fold_frames: frozenset[int] = frozenset()
-    fold_partners: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -345,13 +335,9 @@ class ColliderTrack:
 
 
 def track_of(body: BodySequence) -> ColliderTrack:
-    from datagen.body.parts import fold_partner_bits
-
     faces = body.rest.faces
     return ColliderTrack(body.vertices, faces, body.collider_face_mask, body.fps,
-                         body.lead_in_frames, body.rest.part_labels[faces[:, 0]],
-                         frozenset(body.self_collision.flexion_overlap_frames),
-                         fold_partner_bits(K.PART_BITS))
+                         body.lead_in_frames, body.rest.part_labels[faces[:, 0]])
 
 
 def body_start_transform(body: BodySequence) -> tuple[np.ndarray, np.ndarray]:
@@ -452,24 +438,13 @@ class _Simulation:
         )
         return make_solver(self.options.solver, self.model, self.effects, settings)
 
-    def _fold_table(self, f0: int, f1: int) -> np.ndarray | None:
-        """The fold table for the frame f0 -> f1: the track's partners where the body folds
-        across a joint in it or within FOLD_LEAD_FRAMES after it (the parts close in before
-        they overlap), else None (nothing folds: the fold guard rests)."""
-        folds = self.body.fold_frames
-        if not folds or self.body.fold_partners is None:
-            return None
-        if any(f in folds for f in range(f0, f1 + FOLD_LEAD_FRAMES + 1)):
-            return self.body.fold_partners
-        return None
-
     def _set_body(self, solver, f0: int, f1: int) -> None:
         if self.fixed_pins is not None:
             solver.set_pin_targets(self.fixed_pins, self.fixed_pins)
         if self.collider is None:
             return
         b = self.body.vertices
-        self.collider.set_frames(b[f0], b[f1], self._fold_table(f0, f1))
+        self.collider.set_frames(b[f0], b[f1])
         if self.pins is not None:
             solver.set_pin_targets(self._pin_targets(f0), self._pin_targets(f1))
 
