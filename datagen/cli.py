@@ -358,7 +358,9 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, so
         f"{', '.join(rep['effects'])}\n"
         f"  simulated {rep['simulated_seconds_per_wall_second']:.2f} s per wall-clock second "
         f"({rep['wall_time_s']:.1f} s), retries {rep['retries']}; QA: max strain "
-        f"{float(sim.qa['strain_p999'].max()):.3f} (99.9th pct), deepest penetration share "
+        f"{float(sim.qa['strain_p999'].max()):.3f} (99.9th pct), at most "
+        f"{100 * float(sim.qa['over_strain_share'].max()):.3f} % of springs over their "
+        f"fabric's max_strain, deepest penetration share "
         f"{float(sim.qa['deep_share'].max()):.4f}"
     )
     if rep.get("escalated_from"):

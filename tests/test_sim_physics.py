@@ -563,8 +563,8 @@ def test_frames_over_the_strain_bound_are_redone_with_more_substeps(monkeypatch)
     help to meet (1.2 %), frames that end over it are redone with more substeps and the refined
     run ends less strained than the plain one. Where substeps cannot help, the refinement rests
     between tries instead of redoing every frame. With refinement off, no frame is redone."""
+    from datagen.qa import STRAIN_SHARE_MAX
     from datagen.sim.fabrics import FABRICS as BUILTIN
-    from datagen.sim.model import STRAIN_SHARE_MAX
     from datagen.sim.simulate import REFINE_REST
 
     sv, sf = icosphere(0.25, 4)

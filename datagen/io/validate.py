@@ -420,6 +420,7 @@ class _SequenceCheck:
             values = _read(self.expect(qa, name, (F,), ("float32",)))
             if values is not None:
                 series[name] = values.astype(np.float64)
+        self.fabric_parameters(g)
         if self.qa == "off":
             return
 
@@ -431,14 +432,15 @@ class _SequenceCheck:
             v = series.get(name)
             if v is not None and v.size and v.min() < 0:
                 self.error(f"qa/{name}: negative value {v.min():.4g}", self.qa)
-        for breach in qa_bounds.breaches(series, self.strain_limit(g)):
+        for breach in qa_bounds.breaches(series):
             self.error(str(breach), self.qa)
 
-    def strain_limit(self, g: h5py.Group) -> float | None:
-        """The sequence's strain bound (datagen.qa.strain_limit) from the fabrics as simulated
-        (each garment's @fabric_parameters), or, in a shard written before those were stored,
-        from the built-in fabrics by name; None, with a warning, when a garment's fabric is
-        neither (its bound is not known here)."""
+    def fabric_parameters(self, g: h5py.Group) -> None:
+        """Each garment's fabric as simulated (@fabric_parameters, absent in shards written
+        before they were stored): a Fabric's fields, of the garment's fabric, and a warning
+        where a built-in fabric was simulated with other values than this datagen's. (The
+        strain bound needs none of it: qa/over_strain_share holds each spring to its own
+        fabric's max_strain as simulated.)"""
         from datagen.config import from_mapping
         from datagen.errors import InputError
         from datagen.io.reader import fabric_parameters
@@ -446,8 +448,7 @@ class _SequenceCheck:
 
         garments = g.get("garments")
         if not isinstance(garments, h5py.Group):
-            return None
-        names, stored = [], {}
+            return
         for name in sorted(garments):
             fabric = str(_attr(garments[name], "fabric"))
             where = f"garments/{name}/@fabric_parameters"
@@ -455,31 +456,22 @@ class _SequenceCheck:
                 values = fabric_parameters(garments[name])
             except ValueError as exc:
                 self.error(f"{where}: expected JSON, got {exc}")
-                return None
-            if values is None:  # a shard written before the values were stored
-                if fabric not in FABRICS:
-                    self.error(f"garments/{name}: fabric {fabric!r} is not a built-in fabric "
-                               "and the shard does not store its parameters; strain not "
-                               "checked against it", "warning")
-                    return None
-                names.append(fabric)
+                continue
+            if values is None:
                 continue
             try:
                 if not isinstance(values, dict):
                     raise InputError(None, where, "a JSON mapping", type(values).__name__)
-                stored[fabric] = from_mapping(Fabric, values, None, where)
+                stored = from_mapping(Fabric, values, None, where)
             except InputError as exc:
                 self.error(str(exc))
-                return None
-            if stored[fabric].name != fabric:
-                self.error(f"{where}: the parameters of {stored[fabric].name!r}, expected "
-                           f"those of the garment's fabric {fabric!r}")
-                return None
-            if fabric in FABRICS and stored[fabric] != FABRICS[fabric]:
+                continue
+            if stored.name != fabric:
+                self.error(f"{where}: the parameters of {stored.name!r}, expected those of the "
+                           f"garment's fabric {fabric!r}")
+            elif fabric in FABRICS and stored != FABRICS[fabric]:
                 self.error(f"{where}: {fabric!r} was simulated with other values than this "
-                           "datagen's built-in; its stored bound is used", "warning")
-            names.append(fabric)
-        return qa_bounds.strain_limit(names, stored)
+                           "datagen's built-in", "warning")
 
     # -- a rejected sequence -------------------------------------------------------------------
     def rejected(self, g: h5py.Group) -> None:

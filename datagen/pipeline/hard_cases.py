@@ -18,8 +18,7 @@ import numpy as np
 
 from datagen.config import check_range, from_mapping, load_yaml
 from datagen.errors import InputError
-from datagen.qa import DEEP_SHARE_MAX  # per frame after the lead-in
-from datagen.sim.model import STRAIN_SHARE_MAX
+from datagen.qa import DEEP_SHARE_MAX, STRAIN_SHARE_MAX  # per frame after the lead-in
 from datagen.spec import GarmentSpec, MotionSpec, OutfitSpec, SceneSpec, SimSpec, SubjectSpec
 from datagen.types import BodySequence, Garment, Motion
 

@@ -152,7 +152,6 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
     from datagen import qa
     from datagen.sim.simulate import simulate
 
-    limit = qa.strain_limit([g.fabric for g in garments], options.fabrics)
     dropped: list[dict] = []  # the runs not kept: settings, reason, wall time
     current, outcome = options, first
     while True:
@@ -170,7 +169,7 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
                     current.steps_label(), dropped), exc.frames) from None
             dropped.append({"settings": settings, "reason": exc.reason, "wall_time_s": None})
         else:
-            found = qa.breaches(sim.qa, limit)
+            found = qa.breaches(sim.qa)
             if not found or up is None:
                 if dropped:
                     sim.report["escalated_from"] = dropped[0]
@@ -225,8 +224,7 @@ def over_qa_bounds(record: SequenceRecord,
 
     if record.status != "ok" or record.sim is None or not record.garments:
         return [], ""
-    limit = qa.strain_limit([g.fabric for g in record.garments], fabrics)
-    found = qa.breaches(record.sim.qa, limit) + buried_at_flexed_joints(record, fabrics)
+    found = qa.breaches(record.sim.qa) + buried_at_flexed_joints(record, fabrics)
     if not found:
         return [], ""
     return found, "; ".join(b.reason for b in found) + flexion_overlap_note(

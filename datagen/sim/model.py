@@ -40,10 +40,6 @@ ELASTIC_STIFFNESS = 5.0  # and stiffer than the fabric
 # the equilateral factor) weighs as much as one that size, and a hinge whose wing sits closer
 # than this fraction of the hinge length to it (a needle) carries no bending.
 DEGENERATE_FRACTION = 0.2
-# The QA bound on stretch: at most this share of the fabric springs beyond their fabric's
-# max_strain in a frame (99.9 % within it). The simulator redoes frames over it; the hard cases
-# and validation judge by it.
-STRAIN_SHARE_MAX = 0.001
 # Woven and knitted fabrics stiffen sharply once their yarns straighten; the linear springs of
 # Blender's presets do not. Every solver therefore holds a fabric spring inextensible past
 # this fraction of its fabric's max_strain (strain limiting, as in Provot 1995), below the QA

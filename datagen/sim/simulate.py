@@ -15,11 +15,12 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from datagen.errors import InputError, RejectedSequence
+from datagen.qa import STRAIN_SHARE_MAX
 from datagen.sim import backend
 from datagen.sim.collider import BodyCollider
 from datagen.sim.effects import Effects, SceneContent, resolve_effects
 from datagen.sim.fabrics import Fabric, get_fabric
-from datagen.sim.model import STRAIN_SHARE_MAX, ClothModel, build_cloth_model
+from datagen.sim.model import ClothModel, build_cloth_model
 from datagen.sim.solvers import SolverSettings, make_solver
 from datagen.types import BodySequence, Garment, SimResult
 
