@@ -28,6 +28,29 @@ def user_errors(func):
     return wrapper
 
 
+class FrameBar:
+    """A tqdm bar (on stderr) over the frames of each simulation run that it hears of
+    (datagen.sim.progress): a new bar for each run, so an escalated sequence shows the run it
+    did not keep and the one at finer steps."""
+
+    def __init__(self) -> None:
+        self.bar = None
+
+    def __call__(self, done: int, total: int, settings: str) -> None:
+        from tqdm import tqdm
+
+        if self.bar is None or done == 1:  # a run's first frame: a new run
+            self.close()
+            self.bar = tqdm(total=total, unit="frame", desc=f"simulating ({settings})",
+                            dynamic_ncols=True)
+        self.bar.update(done - self.bar.n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="datagen")
 def main() -> None:
@@ -321,6 +344,7 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, so
     from datagen.pipeline.stages import run_sequence
     from datagen.sim.effects import split_effects_request
     from datagen.sim.fabrics import get_fabric, load_fabrics
+    from datagen.sim.progress import frame_progress
 
     user_fabrics = load_fabrics(fabrics_file) if fabrics_file else {}
     if fabric:
@@ -341,7 +365,12 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, so
     effect_req = effects if effects in ("auto", "all") else tuple(effects.split(","))
     spec = replace(spec, simulation=replace(spec.simulation, solver=solver, quality=quality,
                                             effects=effect_req, wind=wind_v))
-    record = run_sequence(spec, default_body_model(), fabrics=user_fabrics)
+    bar = FrameBar()
+    try:
+        with frame_progress(bar):
+            record = run_sequence(spec, default_body_model(), fabrics=user_fabrics)
+    finally:
+        bar.close()
     if record.status != "ok":
         from datagen.errors import DatagenError
 

@@ -75,11 +75,18 @@ def test_a_run_over_a_bound_is_simulated_again_one_preset_up(monkeypatch):
     """At a 2 % bound the default preset ends over it (measured: 0.0210 at frame 8 with plain
     sweeps), the reference steps within it (0.0187): the result is the second run, it says
     why, and it is the run that simulating at those options gives."""
+    from datagen.sim.progress import frame_progress
+
     garments, track = _sheet_on_sphere(monkeypatch, 0.02)
     calls = _counting_simulate(monkeypatch)
     options = SimOptions(settle_seconds=0.0, strain_refinements=0)
-    result = simulate_within_bounds(garments, track, options)
+    heard: list[tuple[int, int, str]] = []
+    with frame_progress(lambda *frame: heard.append(frame)):
+        result = simulate_within_bounds(garments, track, options)
     assert [c.quality for c in calls] == ["default", "reference"]
+    # Each run tells the listener after each of its 30 frames, naming its settings.
+    assert heard == [(k, 30, "xpbd default 20x4, sor 1.6") for k in range(1, 31)] + [
+        (k, 30, "xpbd reference 40x8, sor 1") for k in range(1, 31)]
     assert (result.report["quality"], result.report["substeps"], result.report["iterations"],
             result.report["sor"]) == ("reference", 40, 8, 1.0)
     first = result.report["escalated_from"]
@@ -90,6 +97,20 @@ def test_a_run_over_a_bound_is_simulated_again_one_preset_up(monkeypatch):
     direct = simulate(garments, track, options.escalated())
     np.testing.assert_array_equal(result.vertices[garments[0].name],
                                   direct.vertices[garments[0].name])
+    assert len(heard) == 60  # outside the block nobody listens
+
+
+def test_datagen_simulate_shows_a_new_bar_for_each_run(capsys):
+    from datagen.cli import FrameBar
+
+    bar = FrameBar()
+    for settings in ("xpbd default 20x4, sor 1.6", "xpbd reference 40x8, sor 1"):
+        for k in range(1, 4):
+            bar(k, 3, settings)
+    bar.close()
+    err = capsys.readouterr().err
+    assert "simulating (xpbd default 20x4, sor 1.6): 100%" in err
+    assert "simulating (xpbd reference 40x8, sor 1): 100%" in err and "3/3" in err
 
 
 def test_a_run_within_its_bounds_is_not_simulated_again(monkeypatch):

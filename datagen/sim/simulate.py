@@ -21,6 +21,7 @@ from datagen.sim.collider import BodyCollider
 from datagen.sim.effects import Effects, SceneContent, resolve_effects
 from datagen.sim.fabrics import Fabric, get_fabric
 from datagen.sim.model import ClothModel, build_cloth_model
+from datagen.sim.progress import report_frame
 from datagen.sim.solvers import SolverSettings, make_solver
 from datagen.types import BodySequence, Garment, SimResult
 
@@ -539,6 +540,8 @@ class _Simulation:
         outputs: dict[str, list] = {g.name: [] for g in self.garments}
         qa_rows: list[dict] = []
         step = 0
+        total = settle + n_body - 1
+        settings = f"{self.options.solver} {self.options.steps_label()}"
         for _ in range(settle):
             # The outfit settles on the rest pose quasi-statically: each frame starts at rest,
             # so a garment fitted with ease lands on the shoulders without the impact that
@@ -547,6 +550,7 @@ class _Simulation:
             step += 1
             x, v = self._state(self.solver)
             self._set_state(self.solver, x, np.zeros_like(v))
+            report_frame(step, total, settings)
         if lead_in == 0:
             self._record(0, outputs, qa_rows)
         for f0 in range(n_body - 1):
@@ -554,6 +558,7 @@ class _Simulation:
             step += 1
             if f0 + 1 >= lead_in:
                 self._record(f0 + 1, outputs, qa_rows)
+            report_frame(step, total, settings)
         t_end = time.perf_counter()
         return self._result(outputs, qa_rows, t_frames - self._t_created, t_end - t_frames,
                             settle)
