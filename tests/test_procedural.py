@@ -334,8 +334,22 @@ def test_hands_clear_the_torso_in_the_rest_stance():
 
 
 def test_generating_300_frames_is_fast():
-    procedural._run_base.cache_clear()
+    """Generating 300 frames of an action costs at most 20 times the forward kinematics of the
+    frames it made (the body stage's first step), measured in the same run: 2.7-4.6 times on
+    2 cores (20-27 ms against 5-8 ms). Best of two of each, as the machine is shared."""
+
+    def best(fn, *args) -> float:
+        times = []
+        for _ in range(2):
+            procedural._run_base.cache_clear()  # no base cycle cached by the run before
+            start = time.perf_counter()
+            fn(*args)
+            times.append(time.perf_counter() - start)
+        return min(times)
+
     for name in sorted(ACTIONS):
-        start = time.perf_counter()
-        generate(name, 300, 30.0, random_params(name, np.random.default_rng(5)))
-        assert time.perf_counter() - start < 0.2, name
+        params = random_params(name, np.random.default_rng(5))
+        motion = generate(name, 300, 30.0, params)
+        ours = best(generate, name, 300, 30.0, params)
+        peer = best(forward_kinematics, motion.poses, motion.trans, REFERENCE_REST_JOINTS)
+        assert ours < 20 * peer, f"{name}: {ours * 1e3:.1f} ms, its kinematics {peer * 1e3:.1f} ms"
