@@ -2,30 +2,14 @@
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 import os
-import sys
 from pathlib import Path
 
 import click
 
-from datagen.errors import DatagenError
-
-
-def user_errors(func):
-    """Print a DatagenError as one line and exit non-zero, without a traceback."""
-
-    @functools.wraps(func)
-    def wrapper(*args, **kwargs):
-        try:
-            return func(*args, **kwargs)
-        except DatagenError as exc:
-            click.echo(f"error: {exc}", err=True)
-            sys.exit(2)
-
-    return wrapper
+from datagen.errors import user_errors
 
 
 class FrameBar:

@@ -6,6 +6,8 @@ their input without reading a traceback.
 
 from __future__ import annotations
 
+import functools
+import sys
 from pathlib import Path
 
 
@@ -59,3 +61,19 @@ class RejectedSequence(DatagenError):
 
     def __reduce__(self):
         return (RejectedSequence, (self.stage, self.reason, self.frames))
+
+
+def user_errors(func):
+    """A CLI command that prints a DatagenError as one line and exits 2, without a traceback."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        try:
+            return func(*args, **kwargs)
+        except DatagenError as exc:
+            import click
+
+            click.echo(f"error: {exc}", err=True)
+            sys.exit(2)
+
+    return wrapper

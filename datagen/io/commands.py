@@ -6,31 +6,15 @@ inside the commands so that `datagen --help` stays instant.
 
 from __future__ import annotations
 
-import functools
 import json
 import sys
 from pathlib import Path
 
 import click
 
-from datagen.errors import DatagenError
+from datagen.errors import DatagenError, user_errors
 
 EXPORT_FORMATS = ("obj", "pc2", "ply")
-
-
-def _user_errors(func):
-    """As datagen.cli.user_errors (one line, exit 2); kept here because cli.py imports this
-    module, and importing cli.py from here would be circular."""
-
-    @functools.wraps(func)
-    def wrapper(*args, **kwargs):
-        try:
-            return func(*args, **kwargs)
-        except DatagenError as exc:
-            click.echo(f"error: {exc}", err=True)
-            sys.exit(2)
-
-    return wrapper
 
 
 def _sequence_of(reader, sequence: str | None) -> str:
@@ -58,7 +42,7 @@ _SEQUENCE_HELP = "Sequence id, e.g. 7-000003 (may be left out when FILE holds on
               show_default=True,
               help="How to treat QA series beyond their limits (deep penetration, strain over "
                    "the fabric's max_strain, negative energy).")
-@_user_errors
+@user_errors
 def validate(path: str, as_json: bool, qa: str) -> None:
     """Check a dataset folder or one shard: format version, every dataset's SHA-256, shapes and
     dtypes, finite values, QA limits, and that manifest.jsonl agrees with the shards.
@@ -89,7 +73,7 @@ def validate(path: str, as_json: bool, qa: str) -> None:
               help="Output folder (created).")
 @click.option("--body/--no-body", default=True, show_default=True,
               help="Export the posed body too.")
-@_user_errors
+@user_errors
 def export(file: str, sequence: str | None, fmt: str, out: str, body: bool) -> None:
     """Export one sequence's garments (and body) from a shard or a dataset folder.
 
@@ -147,7 +131,7 @@ def export(file: str, sequence: str | None, fmt: str, out: str, body: bool) -> N
               help="GIF: render every N-th frame.")
 @click.option("--height", default=320, show_default=True, type=click.IntRange(min=16),
               help="Height of each picture in pixels.")
-@_user_errors
+@user_errors
 def preview(file: str, sequence: str | None, out: str, every: int, height: int) -> None:
     """Render a stored sequence, body and garments, from the front and the side."""
     suffix = Path(out).suffix.lower()
