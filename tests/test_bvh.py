@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -118,26 +117,19 @@ def test_ungrounded_exception_is_the_raw_capture(cmu_imports):
 def test_import_speed(cmu_dir: Path):
     """Importing a long clip (2397 frames, 316k channel values) costs at most 15 times reading
     its numbers with numpy, the least any importer does, measured in the same run (measured
-    4.5 times on 2 cores: 0.62 s against 0.14 s). Best of two of each, as the machine is
-    shared."""
+    4.5 times on 2 cores: 0.62 s against 0.14 s). The median of three of each, as the machine
+    is shared (benchmarks.common.timed)."""
+    from benchmarks.common import timed
     path = cmu_dir / "13_10_daz.bvh"
 
     def numbers() -> np.ndarray:
         text = path.read_text()
         return np.array(text.split("Frame Time:")[1].split("\n", 1)[1].split(), dtype=float)
 
-    def best(fn) -> float:
-        times = []
-        for _ in range(2):
-            start = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - start)
-        return min(times)
-
     motion = load_bvh(path)
     assert 2397 - 12 <= motion.n_frames < 2397  # the Daz snap into the capture is dropped
     assert numbers().size == 2397 * 132  # the peer reads every frame's 132 channels
-    ours, peer = best(lambda: load_bvh(path)), best(numbers)
+    (ours, _), (peer, _) = timed(lambda: load_bvh(path)), timed(numbers)
     assert ours < 15 * peer, f"13_10_daz.bvh took {ours:.2f} s, numpy reads it in {peer:.2f} s"
 
 

@@ -3,8 +3,6 @@ jump ballistics, spin heading, mirroring, rest stance and speed."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 from scipy.ndimage import binary_erosion
@@ -336,20 +334,20 @@ def test_hands_clear_the_torso_in_the_rest_stance():
 def test_generating_300_frames_is_fast():
     """Generating 300 frames of an action costs at most 20 times the forward kinematics of the
     frames it made (the body stage's first step), measured in the same run: 2.7-4.6 times on
-    2 cores (20-27 ms against 5-8 ms). Best of two of each, as the machine is shared."""
+    2 cores (20-27 ms against 5-8 ms). The median of three of each, as the machine is shared
+    (benchmarks.common.timed)."""
+    from functools import partial
 
-    def best(fn, *args) -> float:
-        times = []
-        for _ in range(2):
-            procedural._run_base.cache_clear()  # no base cycle cached by the run before
-            start = time.perf_counter()
-            fn(*args)
-            times.append(time.perf_counter() - start)
-        return min(times)
+    from benchmarks.common import timed
+
+    def generate_afresh(name: str, params: dict) -> None:
+        procedural._run_base.cache_clear()  # no base cycle cached by the run before
+        generate(name, 300, 30.0, params)
 
     for name in sorted(ACTIONS):
         params = random_params(name, np.random.default_rng(5))
         motion = generate(name, 300, 30.0, params)
-        ours = best(generate, name, 300, 30.0, params)
-        peer = best(forward_kinematics, motion.poses, motion.trans, REFERENCE_REST_JOINTS)
+        ours, _ = timed(partial(generate_afresh, name, params))
+        peer, _ = timed(partial(forward_kinematics, motion.poses, motion.trans,
+                                REFERENCE_REST_JOINTS))
         assert ours < 20 * peer, f"{name}: {ours * 1e3:.1f} ms, its kinematics {peer * 1e3:.1f} ms"

@@ -420,7 +420,7 @@ class _SequenceCheck:
             values = _read(self.expect(qa, name, (F,), ("float32",)))
             if values is not None:
                 series[name] = values.astype(np.float64)
-        self.fabric_parameters(g)
+        self.check_fabric_parameters(g)
         if self.qa == "off":
             return
 
@@ -435,7 +435,7 @@ class _SequenceCheck:
         for breach in qa_bounds.breaches(series):
             self.error(str(breach), self.qa)
 
-    def fabric_parameters(self, g: h5py.Group) -> None:
+    def check_fabric_parameters(self, g: h5py.Group) -> None:
         """Each garment's fabric as simulated (@fabric_parameters, absent in shards written
         before they were stored): a Fabric's fields, of the garment's fabric, and a warning
         where a built-in fabric was simulated with other values than this datagen's. (The
