@@ -487,6 +487,17 @@ class ClothSolver:
         if self.n_pins:
             self._run("pins", K.apply_pins, self.x, self.pin_idx, self.pin_t0, self.pin_t1, s1)
 
+    def _contact_and_finish(self, collider, s0: float, s1: float, h: float, finish) -> None:
+        """A substep's end on the per-effect paths of the XPBD and explicit solvers: body
+        contact, garment layers, the strain limit's sweeps after contact, then `finish`
+        (kernels.finish, or finish_contacts for the force-based explicit solver) takes the
+        velocities from the positions."""
+        self._collide(collider, s0, s1, h)
+        self._cloth_collisions(h, s0, s1)
+        self._limit_after_contact(collider, s0, s1, h)
+        self._run("integration", finish, self.x, self.xp, self.v, self.w, self.contact_n,
+                  self.contact_v, h)
+
     def _collide(self, collider, s0: float, s1: float, h: float) -> None:
         self._run("body_collision", K.clear_contacts, self.contact_n, self.contact_v)
         if collider is None or not self.effects.body_collision:
@@ -940,20 +951,7 @@ class XPBDSolver(ClothSolver):
                 self._coloured_iteration(h, it, reverse, sor)
         if self.n_tethers:  # after the sweeps, as in the fused kernel
             self._run("pins", K.apply_tethers, self.x, self.tethers, self.tether_len)
-        self._collide(collider, s0, s1, h)
-        self._cloth_collisions(h, s0, s1)
-        self._limit_after_contact(collider, s0, s1, h)
-        self._run(
-            "integration",
-            K.finish,
-            self.x,
-            self.xp,
-            self.v,
-            self.w,
-            self.contact_n,
-            self.contact_v,
-            h,
-        )
+        self._contact_and_finish(collider, s0, s1, h, K.finish)
 
     def _bending_sweep(self, h: float, it: int, reverse: int, sor: float) -> None:
         """Iteration it's bending on the serial per-effect path: every stencil in the first
@@ -1041,20 +1039,7 @@ class ExplicitSolver(ClothSolver):
         )
         self._limit_strain(h)
         self._pins(s1)
-        self._collide(collider, s0, s1, h)
-        self._cloth_collisions(h, s0, s1)
-        self._limit_after_contact(collider, s0, s1, h)
-        self._run(
-            "integration",
-            K.finish_contacts,
-            self.x,
-            self.xp,
-            self.v,
-            self.w,
-            self.contact_n,
-            self.contact_v,
-            h,
-        )
+        self._contact_and_finish(collider, s0, s1, h, K.finish_contacts)
 
 
 def make_solver(name: str, model: ClothModel, effects: Effects, settings: SolverSettings):
