@@ -112,6 +112,10 @@ class BodyCollider:
             boxes[:, K.T_PART] = face_parts
         self.tbox.from_numpy(boxes)
         self.shift_np = np.zeros(3)
+        # The frame's fold fields (set_fold; datagen.sim.fold_fields): [0] where none.
+        self.fold_np = np.zeros(1, NP_REAL)
+        self.fold_nd = ti.ndarray(REAL, 1)
+        self.fold_nd.from_numpy(self.fold_np)
         self._n_cells_alloc = 0
         self.counts = self.starts = self.items = None
         self._items_alloc = 0
@@ -157,6 +161,18 @@ class BodyCollider:
             K.copy_in(v1, self.b1, backend.serial())
             self._normals(self.b1, self.n1)
         self._build_grid()
+
+    def set_fold(self, blob: np.ndarray | None) -> None:
+        """The coming frame's fold fields (FoldFields.blob), None outside a fold: the part
+        guard's lookup of folding parts (kernels.fold_near)."""
+        if blob is None:
+            if self.fold_np.shape[0] == 1 and self.fold_np[0] == 0.0:
+                return
+            blob = np.zeros(1)
+        self.fold_np = np.asarray(blob, dtype=NP_REAL)
+        if self.fold_nd.shape[0] != self.fold_np.shape[0]:
+            self.fold_nd = ti.ndarray(REAL, self.fold_np.shape[0])
+        self.fold_nd.from_numpy(self.fold_np)
 
     def _normals(self, b, n) -> None:
         """Area-weighted vertex normals n of the body at positions b (both on the device)."""
@@ -281,7 +297,7 @@ class BodyCollider:
         K.grid_nearest(x, w, self.b0, self.b1, self.faces, self.origin, self.inv_cell,
                        self.dims, self.starts, self.items, float(s), float(self.cell), tri,
                        int(which), guard, float(odo), float(self.grid_tag),
-                       VEC3(*self.shift_np), self.tbox)
+                       VEC3(*self.shift_np), self.tbox, self.fold_nd, 0)
 
     def _scratch_guard(self, n: int):
         from datagen.sim.solvers import fresh_guards

@@ -7,6 +7,7 @@ the CPU default) and coloured Gauss-Seidel (one parallel loop per colour, for GP
 
 import taichi as ti
 
+from datagen.sim import fold_fields as FF
 from datagen.sim.precision import REAL, VEC3, VEC4
 
 vec3 = VEC3
@@ -32,6 +33,9 @@ OTHER_SURFACE_ZONE = 0.008
 # G_OTHER's distance part when no facing surface of another part was within the searched cell
 # (a cell, GRID_CELL, is far below it: the guard packs the distance after the part's integer).
 OTHER_NONE = 0.75
+# A folding part's field (fold_near) counts a vertex this deep inside it as caught by it: deeper
+# is the body's own overlap at the joint, where no search decides better.
+FOLD_DEPTH = 0.03
 V8 = ti.types.ndarray(dtype=GUARD, ndim=1)
 F1 = ti.types.ndarray(dtype=REAL, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -1453,6 +1457,8 @@ def nearest_one(
     s_frame: REAL,
     shift: vec3,
     tbox: V8,
+    fold: F1,
+    fold_at: ti.i32,
 ):
     """The closest collider triangle to cloth vertex i within `max_dist` (else -1), at body
     positions interpolated at fraction s, searching the 27 grid cells around the vertex.
@@ -1509,6 +1515,13 @@ def nearest_one(
                 # stays within max_dist - budget of where it was searched.
                 again = not guard_holds(x[i], g, budget, max_dist - budget, odo, grid_tag,
                                         s_frame, shift)
+            elif fold_at >= 0 and fold[fold_at + FF.B_N] > 0.0:
+                # Nothing faced it within a cell when searched, but a part folding onto its
+                # own may have come from farther since (fold_near).
+                f = faces[tri[i]]
+                a = lerp3(b0[f[0]], b1[f[0]], s)
+                nb = (lerp3(b0[f[1]], b1[f[1]], s) - a).cross(lerp3(b0[f[2]], b1[f[2]], s) - a)
+                again = fold_near(x[i], part - 1.0, nb, s_frame, fold, fold_at, max_dist)
     searched = which == SEARCH_ALL or (which == SEARCH_UNTRACKED) == (tri[i] < 0) or again
     if w[i] > 0.0 and searched and not clear:
         p = x[i]
@@ -1567,6 +1580,71 @@ def nearest_one(
                                   starts, items, s, max_dist, tbox)
             guard[i] = GUARD(p[0], p[1], p[2], odo, grid_tag, s_frame, fastest,
                              1.0 + part + other)
+
+
+@ti.func
+def quat_matrix(q: ti.math.vec4) -> ti.types.matrix(3, 3, REAL):
+    """The rotation of a unit quaternion (w, x, y, z)."""
+    w, a, b, c = q[0], q[1], q[2], q[3]
+    return ti.Matrix([
+        [1.0 - 2.0 * (b * b + c * c), 2.0 * (a * b - c * w), 2.0 * (a * c + b * w)],
+        [2.0 * (a * b + c * w), 1.0 - 2.0 * (a * a + c * c), 2.0 * (b * c - a * w)],
+        [2.0 * (a * c - b * w), 2.0 * (b * c + a * w), 1.0 - 2.0 * (a * a + b * b)],
+    ], dt=REAL)
+
+
+@ti.func
+def fold_near(p: vec3, part: REAL, nb: vec3, s_frame: REAL, fold: F1, at: ti.i32,
+              reach: REAL) -> ti.i32:
+    """Whether the surface of a body part that folds onto `part` in this frame (the fold
+    fields, datagen.sim.fold_fields, from fold[at]) is within `reach` of p and faces the
+    tracked triangle's normal nb (FACING_COS), or has p inside it by less than FOLD_DEPTH: one
+    transform into the part's own frame, interpolated at the frame fraction s_frame, and one
+    trilinear lookup per folding part."""
+    found = 0
+    n_fields = ti.cast(fold[at + FF.B_N], ti.i32)
+    bits = ti.cast(fold[at + FF.B_PARTNERS + ti.cast(part, ti.i32) % FF.PART_SLOTS], ti.i32)
+    for k in range(n_fields):
+        if found == 0 and (bits >> k) & 1 != 0:
+            h = at + FF.B_FIELDS + FF.HEADER * k
+            q0 = ti.math.vec4(fold[h + FF.H_Q0], fold[h + FF.H_Q0 + 1], fold[h + FF.H_Q0 + 2],
+                              fold[h + FF.H_Q0 + 3])
+            q1 = ti.math.vec4(fold[h + FF.H_Q1], fold[h + FF.H_Q1 + 1], fold[h + FF.H_Q1 + 2],
+                              fold[h + FF.H_Q1 + 3])
+            q = q0 + (q1 - q0) * s_frame
+            rot = quat_matrix(q / q.norm())
+            c = vec3(fold[h + FF.H_C0], fold[h + FF.H_C0 + 1], fold[h + FF.H_C0 + 2])
+            c = c + (vec3(fold[h + FF.H_C1], fold[h + FF.H_C1 + 1], fold[h + FF.H_C1 + 2])
+                     - c) * s_frame
+            y = rot.transpose() @ (p - c)
+            o = vec3(fold[h + FF.H_ORIGIN], fold[h + FF.H_ORIGIN + 1], fold[h + FF.H_ORIGIN + 2])
+            g = (y - o) * fold[h + FF.H_INV_CELL]
+            nx = ti.cast(fold[h + FF.H_DIMS], ti.i32)
+            ny = ti.cast(fold[h + FF.H_DIMS + 1], ti.i32)
+            nz = ti.cast(fold[h + FF.H_DIMS + 2], ti.i32)
+            i0 = ti.cast(ti.floor(g), ti.i32)
+            if (i0[0] >= 0 and i0[0] < nx - 1 and i0[1] >= 0 and i0[1] < ny - 1
+                    and i0[2] >= 0 and i0[2] < nz - 1):
+                t = g - ti.cast(i0, REAL)
+                data = at + ti.cast(fold[h + FF.H_DATA], ti.i32)
+                size = nx * ny * nz
+                d = ti.cast(0.0, REAL)
+                grad = vec3(0.0)
+                for corner in ti.static(range(8)):
+                    dx, dy, dz = corner >> 2, (corner >> 1) & 1, corner & 1
+                    cid = ((i0[0] + dx) * ny + i0[1] + dy) * nz + i0[2] + dz
+                    val = fold[data + cid] + (fold[data + size + cid] - fold[data + cid]) * s_frame
+                    wx = dx * t[0] + (1 - dx) * (1.0 - t[0])
+                    wy = dy * t[1] + (1 - dy) * (1.0 - t[1])
+                    wz = dz * t[2] + (1 - dz) * (1.0 - t[2])
+                    d += wx * wy * wz * val
+                    grad += val * vec3((2 * dx - 1) * wy * wz, (2 * dy - 1) * wx * wz,
+                                       (2 * dz - 1) * wx * wy)
+                if d > -FOLD_DEPTH and d < reach:
+                    n_world = rot @ grad
+                    if n_world.dot(nb) < FACING_COS * n_world.norm() * nb.norm():
+                        found = 1
+    return found
 
 
 @ti.func
@@ -1645,6 +1723,8 @@ def grid_nearest(
     grid_tag: REAL,
     shift: vec3,
     tbox: V8,
+    fold: F1,
+    fold_at: ti.i32,
 ):
     for i in x:
         nearest_one(
@@ -1669,6 +1749,8 @@ def grid_nearest(
             s,
             shift,
             tbox,
+            fold,
+            fold_at,
         )
 
 
@@ -1676,14 +1758,14 @@ def grid_nearest(
 def nearest_untracked(x: V3, w: F1, bs1: V3, faces: I3, origin: vec3, inv_cell: REAL,
                       dims: ti.math.ivec3, starts: I1, items: I1, cell: REAL, tri: I1,
                       guard: V8, odo0: REAL, travel: REAL, grid_tag: REAL, s1: REAL,
-                      shift: vec3, tbox: V8):
+                      shift: vec3, tbox: V8, fold: F1, fold_at: ti.i32):
     """A substep's search of the untracked vertices as xpbd_frame runs it: the body at the
     substep's end from interpolate_body, the odometer odo0 + s1 travel computed here (computed
     in Python it rounded differently, and a guard's test could come out the other way)."""
     for i in x:
         nearest_one(i, x, w, bs1, bs1, faces, origin, inv_cell, dims, starts, items, 1.0, cell,
                     tri, SEARCH_UNTRACKED, guard, odo0 + s1 * travel, grid_tag, s1, shift,
-                    tbox)
+                    tbox, fold, fold_at)
 
 
 # -- one launch per frame (CPU) ----------------------------------------------------------------
@@ -1930,6 +2012,7 @@ def xpbd_frame(
                 nearest_one(
                     i, x, w, bs1, bs1, faces, origin, inv_cell, dims, starts, items, 1.0, cell,
                     tri, SEARCH_UNTRACKED, guard, odo0 + s1 * body_travel, tag, s1, shift, tbox,
+                    P, P_SIZE,
                 )
             for i in range(n):
                 collide_one(
@@ -1962,7 +2045,7 @@ def xpbd_frame(
                 nearest_one(
                     i, x, l_w, l_b0, l_b1, l_faces, l_origin, l_inv_cell, l_dims, l_starts,
                     l_items, s1, l_cell, l_tri, SEARCH_UNTRACKED, l_guard,
-                    l_odo0 + s1 * l_travel, l_tag, s1, l_shift, l_tbox,
+                    l_odo0 + s1 * l_travel, l_tag, s1, l_shift, l_tbox, P, -1,
                 )
             for i in range(n):
                 vertex_normal_clear_one(i, l_nrm)

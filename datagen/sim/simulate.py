@@ -20,6 +20,7 @@ from datagen.sim import backend
 from datagen.sim.collider import BodyCollider
 from datagen.sim.effects import Effects, SceneContent, resolve_effects
 from datagen.sim.fabrics import Fabric, get_fabric
+from datagen.sim.fold_fields import FoldFields
 from datagen.sim.model import ClothModel, build_cloth_model
 from datagen.sim.progress import report_frame
 from datagen.sim.solvers import SolverSettings, make_solver
@@ -330,6 +331,9 @@ class ColliderTrack:
     lead_in_frames: int = 0
     # (T,) each face's body part, or None for a collider that is one surface (BodyCollider)
     face_parts: np.ndarray | None = None
+    # The distance fields of the parts folding across a joint in the body stage's flexion
+    # frames (the hip and knee), for the part guard (kernels.fold_near); None where none fold.
+    fold_fields: FoldFields | None = None
 
     @property
     def n_frames(self) -> int:
@@ -337,9 +341,16 @@ class ColliderTrack:
 
 
 def track_of(body: BodySequence) -> ColliderTrack:
+    from datagen.body.parts import FLEXION_SIDES, PART_INDEX
+
     faces = body.rest.faces
+    face_parts = body.rest.part_labels[faces[:, 0]]
+    report = getattr(body, "self_collision", None)
+    folds = frozenset(getattr(report, "flexion_overlap_frames", None) or ())
+    fields = (FoldFields(body.vertices, faces, face_parts, folds, FLEXION_SIDES, PART_INDEX)
+              if folds else None)
     return ColliderTrack(body.vertices, faces, body.collider_face_mask, body.fps,
-                         body.lead_in_frames, body.rest.part_labels[faces[:, 0]])
+                         body.lead_in_frames, face_parts, fields)
 
 
 def body_start_transform(body: BodySequence) -> tuple[np.ndarray, np.ndarray]:
@@ -447,6 +458,8 @@ class _Simulation:
             return
         b = self.body.vertices
         self.collider.set_frames(b[f0], b[f1])
+        fields = self.body.fold_fields
+        self.collider.set_fold(fields.blob(f0, f1) if fields is not None else None)
         if self.pins is not None:
             solver.set_pin_targets(self._pin_targets(f0), self._pin_targets(f1))
 

@@ -649,7 +649,8 @@ class XPBDSolver(ClothSolver):
                   c.bs0, c.bs1, c.ns1, True)
         self._run("body_collision", K.nearest_untracked, self.x, self.w, c.bs1, c.faces,
                   c.origin, c.inv_cell, c.dims, c.starts, c.items, c.cell, self.tri,
-                  self.guard, self.odo, c.max_speed, c.grid_tag, s1, VEC3(*c.shift_np), c.tbox)
+                  self.guard, self.odo, c.max_speed, c.grid_tag, s1, VEC3(*c.shift_np), c.tbox,
+                  c.fold_nd, 0)
         self._run("body_collision", K.collide_body, self.x, self.xp, self.w, self.tri, c.faces,
                   c.fadj, c.bs0, c.bs1, c.ns1, c.ns1, s0, s1, self.thickness, self.friction,
                   self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n, self.contact_v,
@@ -824,6 +825,8 @@ class XPBDSolver(ClothSolver):
         P[K.P_L_TAG] = lc.grid_tag
         P[K.P_SHIFT : K.P_SHIFT + 3] = c.shift_np
         P[K.P_L_SHIFT : K.P_L_SHIFT + 3] = lc.shift_np
+        # The fold fields ride after the scalars (kernels.fold_near reads them at P_SIZE).
+        P = np.concatenate([P, np.asarray(c.fold_np, NP_REAL)])
         Q = np.zeros(K.Q_SIZE, np.int32)
         Q[K.Q_N_SUB] = n_sub
         Q[K.Q_N_ITER] = self.settings.iterations
@@ -883,6 +886,7 @@ class XPBDSolver(ClothSolver):
                 used=i1,
                 origin=VEC3(0.0),
                 origin_np=np.zeros(3),
+                fold_np=np.zeros(1, NP_REAL),
                 dims_np=np.ones(3, np.int32),
                 inv_cell=1.0,
                 dims=ti.math.ivec3(1, 1, 1),

@@ -1,0 +1,190 @@
+"""Distance fields of the body parts that fold onto each other across a joint (the hip and the
+knee: datagen.body.parts.FLEXION_SIDES), in each part's own moving frame, for the frames in
+which the body stage found them folding.
+
+Why: a tracked cloth vertex follows its own triangle's surface, and the part guard
+(kernels.nearest_one) searches it again only when the last search saw another part's facing
+surface within a grid cell. A thigh closing over trousers that track the calf or the belly
+arrives from farther than a cell between full searches and swallows them (the fast kick). Proofs
+that nothing comes near over a frame scanned triangles over regions that grow with the limb's
+motion and made a running sequence four to seven times slower (docs/simulator.md). Here the
+question "how near is a folding part's surface" is one rigid transform and one trilinear lookup:
+
+- each part's frame is the rigid fit (Kabsch) of its vertices to where they were in the track's
+  first frame; within a frame the rotation is interpolated (normalised quaternion lerp) and the
+  centre linearly;
+- in that frame, the part's own triangles are sampled once per body frame as a signed distance
+  (pseudonormal sign; the patch is open at the joint) on a fixed grid per part (FIELD_CELL), and
+  within a frame the two ends' values are interpolated linearly. Skinning's deviation from the
+  rigid motion near the joint (5-10 cm) is in the sampled surface, not in the transform.
+
+The fields travel to the kernels as one float array (`FoldFields.blob`, layout below), appended
+to the fused frame kernel's scalar array, which has no argument left.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+
+FIELD_CELL = 0.015  # metres: trilinear interpolation of a limb's distance, a few mm off at most
+# The grid reaches this far beyond a part's surface in every frame it is sampled in: the
+# trigger distance (a collider cell, 25 mm) and a margin.
+FIELD_MARGIN = 0.035
+# The field runs this many frames before a fold: the parts close in before skinning sinks them
+# into each other.
+FOLD_LEAD_FRAMES = 2
+# Blob layout (offsets from the blob's start): the number of fields, then per body part the
+# bits of the field slots that fold onto it (PART_SLOTS entries), then per field HEADER values
+# and the data of both frame ends.
+PART_SLOTS = 32
+B_N, B_PARTNERS = 0, 1
+B_FIELDS = B_PARTNERS + PART_SLOTS
+(H_PART, H_ORIGIN, H_INV_CELL, H_DIMS, H_Q0, H_C0, H_Q1, H_C1, H_DATA) = (
+    0, 1, 4, 5, 8, 12, 15, 19, 22)
+HEADER = 23
+MAX_FIELDS = 8
+
+
+def _kabsch(ref: np.ndarray, cur: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rotation R and centres (c_ref, c_cur) with cur ~ R (ref - c_ref) + c_cur."""
+    c_ref = ref.mean(axis=0)
+    c_cur = cur.mean(axis=0)
+    h = (ref - c_ref).T @ (cur - c_cur)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return rot, c_ref, c_cur
+
+
+def _quaternion(rot: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) of a rotation matrix."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(rot).as_quat()
+    return np.array([w, x, y, z])
+
+
+class FoldFields:
+    """Per body frame, the folding parts' frames and distance fields, computed on demand."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, face_parts: np.ndarray,
+                 fold_frames: frozenset[int], sides: tuple, part_index: dict[str, int]) -> None:
+        self.vertices = vertices
+        self.faces = np.asarray(faces, dtype=np.int64)
+        self.face_parts = np.asarray(face_parts)
+        self.fold_frames = frozenset(int(f) for f in fold_frames)
+        n_frames = vertices.shape[0]
+        parts: list[int] = []
+        partners: dict[int, set[int]] = {}
+        for side_a, side_b in sides:
+            a = [part_index[p] for p in side_a]
+            b = [part_index[p] for p in side_b]
+            for p in a + b:
+                if p not in parts:
+                    parts.append(p)
+            for p in a:
+                partners.setdefault(p, set()).update(b)
+            for p in b:
+                partners.setdefault(p, set()).update(a)
+        if len(parts) > MAX_FIELDS:
+            raise ValueError(f"FoldFields: {len(parts)} folding parts, at most {MAX_FIELDS}")
+        self.parts = parts
+        self.partner_bits = np.zeros(PART_SLOTS)
+        for p, others in partners.items():
+            self.partner_bits[p % PART_SLOTS] = sum(1 << parts.index(o) for o in others)
+        # Each part's triangles (re-indexed to its own vertices) and the frames it is sampled in.
+        self.tris: list[np.ndarray] = []
+        self.verts: list[np.ndarray] = []
+        for p in parts:
+            tri = self.faces[self.face_parts == p]
+            used, local = np.unique(tri, return_inverse=True)
+            self.verts.append(used)
+            self.tris.append(local.reshape(-1, 3))
+        self.frames = sorted({f for g in self.fold_frames
+                              for f in range(g - FOLD_LEAD_FRAMES - 1, g + 1)
+                              if 0 <= f < n_frames})
+        # A fixed grid per part over every sampled frame's surface in the part's own frame.
+        self.boxes = []
+        for k in range(len(parts)):
+            ref = vertices[0][self.verts[k]]
+            lo = np.full(3, np.inf)
+            hi = np.full(3, -np.inf)
+            for f in self.frames:
+                local = self._local(k, f, ref)
+                lo = np.minimum(lo, local.min(axis=0))
+                hi = np.maximum(hi, local.max(axis=0))
+            lo -= FIELD_MARGIN
+            hi += FIELD_MARGIN
+            dims = np.ceil((hi - lo) / FIELD_CELL).astype(np.int64) + 1
+            self.boxes.append((lo, dims))
+        self._cache: OrderedDict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = (
+            OrderedDict())
+
+    def _local(self, k: int, f: int, ref: np.ndarray | None = None) -> np.ndarray:
+        """Part k's vertices at frame f in its own frame (the first frame's pose, centred)."""
+        if ref is None:
+            ref = self.vertices[0][self.verts[k]]
+        cur = np.asarray(self.vertices[f][self.verts[k]], dtype=np.float64)
+        rot, c_ref, c_cur = _kabsch(np.asarray(ref, dtype=np.float64), cur)
+        return (cur - c_cur) @ rot
+
+    def _sample(self, f: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Per part: (quaternion, centre, field values) at body frame f."""
+        import igl
+
+        if f in self._cache:
+            self._cache.move_to_end(f)
+            return self._cache[f]
+        out = []
+        for k in range(len(self.parts)):
+            ref = np.asarray(self.vertices[0][self.verts[k]], dtype=np.float64)
+            cur = np.asarray(self.vertices[f][self.verts[k]], dtype=np.float64)
+            rot, _, c_cur = _kabsch(ref, cur)
+            local = (cur - c_cur) @ rot
+            lo, dims = self.boxes[k]
+            axes = [lo[d] + FIELD_CELL * np.arange(dims[d]) for d in range(3)]
+            grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+            sd, *_ = igl.signed_distance(grid, np.ascontiguousarray(local),
+                                         np.ascontiguousarray(self.tris[k]),
+                                         sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
+            out.append((_quaternion(rot), c_cur, np.asarray(sd, dtype=np.float64)))
+        self._cache[f] = out
+        while len(self._cache) > 3:
+            self._cache.popitem(last=False)
+        return out
+
+    def active(self, f0: int, f1: int) -> bool:
+        """Whether the frame f0 -> f1 is in or just before a fold."""
+        return any(f in self.fold_frames for f in range(f0, f1 + FOLD_LEAD_FRAMES + 1))
+
+    def blob(self, f0: int, f1: int) -> np.ndarray | None:
+        """The kernels' array for the frame f0 -> f1, or None outside a fold."""
+        if not self.active(f0, f1):
+            return None
+        a = self._sample(f0)
+        b = self._sample(f1)
+        head = np.zeros(B_FIELDS + HEADER * len(self.parts))
+        head[B_N] = len(self.parts)
+        head[B_PARTNERS:B_PARTNERS + PART_SLOTS] = self.partner_bits
+        chunks = [head]
+        at = len(head)
+        for k, part in enumerate(self.parts):
+            lo, dims = self.boxes[k]
+            h = B_FIELDS + HEADER * k
+            head[h + H_PART] = part
+            head[h + H_ORIGIN:h + H_ORIGIN + 3] = lo
+            head[h + H_INV_CELL] = 1.0 / FIELD_CELL
+            head[h + H_DIMS:h + H_DIMS + 3] = dims
+            head[h + H_Q0:h + H_Q0 + 4] = a[k][0]
+            head[h + H_C0:h + H_C0 + 3] = a[k][1]
+            q1 = b[k][0]
+            if np.dot(q1, a[k][0]) < 0.0:
+                q1 = -q1  # the short way round
+            head[h + H_Q1:h + H_Q1 + 4] = q1
+            head[h + H_C1:h + H_C1 + 3] = b[k][1]
+            head[h + H_DATA] = at
+            chunks += [a[k][2], b[k][2]]
+            at += 2 * len(a[k][2])
+        return np.concatenate(chunks)
