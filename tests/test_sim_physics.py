@@ -192,16 +192,13 @@ def test_a_limb_at_10_m_s_does_not_tunnel_through_its_trouser_leg():
     assert too_fast > 0  # the check sees fabric that passed through the limb
 
 
-def _block_over_sheet(parts: bool, speed: float, fold: bool = False) -> tuple[list[int], object]:
+def _block_over_sheet(parts: bool, speed: float) -> tuple[list[int], object]:
     """A 12 cm cotton sheet lying on a plate (part 0), and a block (part 1, 5 x 30 x 6 cm) that
     overlaps the plate by 1 cm, as a forearm folded onto the upper arm overlaps it, sliding
     across it at `speed` (m/s). Per frame, how many sheet vertices are inside the block deeper
     than the thickness; and the run. `parts`: whether the collider knows which part each face
-    is of; `fold`: whether the two fold onto each other in every frame (the body stage's
-    flexion frames: the part guard's fold fields, datagen.sim.fold_fields)."""
+    is of."""
     import trimesh
-
-    from datagen.sim.fold_fields import FoldFields
 
     plate = trimesh.creation.box(extents=(0.5, 0.5, 0.02))
     plate.apply_translation((0.0, 0.0, -0.01))
@@ -210,13 +207,10 @@ def _block_over_sheet(parts: bool, speed: float, fold: bool = False) -> tuple[li
     bv, bf = trimesh.remesh.subdivide_to_size(block.vertices, block.faces, 0.01)
     frames = int(round(0.4 / speed * 30))
     centres = -0.2 + speed * np.arange(frames + 1) / 30.0
-    vertices = np.array([np.concatenate([pv, bv + (c, 0.0, 0.02)]) for c in centres])
-    faces = np.concatenate([pf, bf + len(pv)]).astype(np.int32)
-    face_parts = np.r_[np.zeros(len(pf), int), np.ones(len(bf), int)]
-    fields = FoldFields(vertices, faces, face_parts, frozenset(range(frames + 1)),
-                        ((("plate",), ("block",)),), {"plate": 0, "block": 1}) if fold else None
-    track = ColliderTrack(vertices, faces, np.ones(len(pf) + len(bf), bool),
-                          face_parts=face_parts if parts else None, fold_fields=fields)
+    track = ColliderTrack(
+        np.array([np.concatenate([pv, bv + (c, 0.0, 0.02)]) for c in centres]),
+        np.concatenate([pf, bf + len(pv)]).astype(np.int32), np.ones(len(pf) + len(bf), bool),
+        face_parts=np.r_[np.zeros(len(pf), int), np.ones(len(bf), int)] if parts else None)
     sheet = grid_sheet(24, 0.12, 0.006)
     result = simulate([sheet], track, SimOptions(settle_seconds=0.0, strain_refinements=0))
     depth = FABRICS["cotton"].thickness
@@ -248,22 +242,66 @@ def test_cloth_on_one_body_part_is_pushed_by_another_that_folds_onto_it():
     assert run.qa["deep_share"].max() == 0.0  # ...where the QA sees none of it
 
 
+def _plate_folding_onto_trouser_leg(fold: bool) -> list[int]:
+    """A loose cotton tube (a trouser leg, radius 7 cm, its waist pinned) around a vertical
+    limb (part 0, radius 5 cm), and a plate (part 1, 45 x 30 x 4 cm) hinged 1 cm outside the
+    limb's top, as a thigh folds onto the calf with the body stage's 1 cm gap between them,
+    swinging from horizontal down onto the limb's side over 8 frames (its far end at 1.8 m/s,
+    6 cm a frame) and then holding. Per frame, how many of the tube's vertices are inside the
+    plate deeper than the thickness (the waist's pinned vertices, which follow the limb, left
+    out). `fold`: whether the two parts fold onto each other in every
+    frame (the body stage's flexion frames), so that the part guard looks the plate up in its
+    distance field (datagen.sim.fold_fields)."""
+    import trimesh
+
+    from datagen.sim.fold_fields import FoldFields
+    from datagen.sim.scenes import cylinder_mesh, tube
+
+    lv, lf = cylinder_mesh(0.05, 0.6, sections=32, rings=24)
+    length, width, thick = 0.45, 0.3, 0.04
+    plate = trimesh.creation.box(extents=(thick, width, length))
+    plate.apply_translation((thick / 2, 0.0, -length / 2))  # its face at x = 0, hinge at 0
+    pv, pf = trimesh.remesh.subdivide_to_size(plate.vertices, plate.faces, 0.02)
+    hinge = np.array([0.06, 0.0, 0.5])
+    angles = np.radians(np.r_[np.linspace(90.0, 0.0, 9), np.zeros(6)])
+
+    def rotation(a: float) -> np.ndarray:  # 90 degrees: horizontal, its face down
+        return np.array([[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0],
+                         [np.sin(a), 0.0, np.cos(a)]])
+
+    vertices = np.array([np.concatenate([lv, pv @ rotation(a).T + hinge]) for a in angles])
+    faces = np.concatenate([lf, pf + len(lv)]).astype(np.int32)
+    face_parts = np.r_[np.zeros(len(lf), int), np.ones(len(pf), int)]
+    fields = FoldFields(vertices, faces, face_parts, frozenset(range(len(angles))),
+                        ((("limb",), ("plate",)),), {"limb": 0, "plate": 1}) if fold else None
+    track = ColliderTrack(vertices, faces, np.ones(len(faces), bool), face_parts=face_parts,
+                          fold_fields=fields)
+    leg = tube(0.07, 0.35, 48, 18, top=0.45)
+    leg.pinned = leg.loops["waist"]
+    result = simulate([leg], track, SimOptions(settle_seconds=0.0, strain_refinements=0))
+    depth = FABRICS["cotton"].thickness
+    free = np.setdiff1d(np.arange(len(leg.vertices)), leg.pinned)
+    swallowed = []
+    for a, x in zip(angles, result.vertices[leg.name][:, free].astype(np.float64), strict=True):
+        local = (x - hinge) @ rotation(a)
+        inside = ((local[:, 0] > depth) & (local[:, 0] < thick - depth)
+                  & (np.abs(local[:, 1]) < width / 2 - depth)
+                  & (local[:, 2] > -length + depth) & (local[:, 2] < -depth))
+        swallowed.append(int(inside.sum()))
+    return swallowed
+
+
 def test_a_part_folding_onto_cloth_from_beyond_a_cell_pushes_it_in_fold_frames():
     """The part guard searches a tracked vertex again only when its last search saw another
-    part's facing surface within a grid cell (25 mm), so a part arriving from farther between
-    two full searches (every fifth frame) swallows the cloth: the block at 1 and 2 m/s took 200
-    and 225 of the sheet's 625 vertices inside it (measured 2026-11-30), as the fast kick's thigh
-    closes over trousers that track the calf. In the frames where the two parts fold onto each
+    part's facing surface within a grid cell (25 mm), so a part that folds onto it from farther
+    between two full searches (every fifth frame) swallows the cloth, as the fast kick's thigh
+    closed over trousers that track the calf. In the frames where the two parts fold onto each
     other, each tracked vertex looks the folding part up in its distance field (one transform,
-    one trilinear lookup: kernels.fold_near) and is searched again once that part's facing
-    surface is within a cell: the sheet is pushed ahead of the block, none of it inside."""
-    for speed in (1.0, 2.0):
-        swallowed, result = _block_over_sheet(parts=True, speed=speed, fold=True)
-        assert max(swallowed) == 0, speed
-        x = result.vertices["sheet"][-1]
-        assert x[:, 0].min() > 0.2 + 0.025
-    blind, _ = _block_over_sheet(parts=True, speed=2.0)
-    assert max(blind) > 100  # without the fields the part guard's gap swallows it
+    one trilinear lookup: kernels.fold_near) and is searched again once that part's surface,
+    closing face to face, is within a cell: none of the sheet ends up inside the flap."""
+    blind = _plate_folding_onto_trouser_leg(fold=False)
+    assert max(blind) > 100  # without the fields the part guard's gap swallows it (126)
+    assert max(_plate_folding_onto_trouser_leg(fold=True)) == 0
 
 
 def _trampoline_centre_z(outer: bool, inner_fabric: str = "cotton",

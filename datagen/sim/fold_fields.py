@@ -37,13 +37,19 @@ FIELD_MARGIN = 0.035
 FOLD_LEAD_FRAMES = 2
 # Blob layout (offsets from the blob's start): the number of fields, then per body part the
 # bits of the field slots that fold onto it (PART_SLOTS entries), then per field HEADER values
-# and the data of both frame ends.
+# and the data, each grid point's values at the frame's two ends side by side.
+# Then per body part its own field's slot plus one (0: none), whose motion the vertices
+# tracking it move with (kernels.fold_guard).
 PART_SLOTS = 32
 B_N, B_PARTNERS = 0, 1
-B_FIELDS = B_PARTNERS + PART_SLOTS
-(H_PART, H_ORIGIN, H_INV_CELL, H_DIMS, H_Q0, H_C0, H_Q1, H_C1, H_DATA) = (
-    0, 1, 4, 5, 8, 12, 15, 19, 22)
-HEADER = 23
+B_OWN = B_PARTNERS + PART_SLOTS
+B_FIELDS = B_OWN + PART_SLOTS
+# Per field: its part, the grid (origin, 1 / cell, dimensions), the frame's two ends (rotation
+# as a quaternion, centre), the centre's motion over the frame, the most any of the part's
+# vertices moves relative to it, and where its data starts.
+(H_PART, H_ORIGIN, H_INV_CELL, H_DIMS, H_Q0, H_C0, H_Q1, H_C1, H_SHIFT, H_TRAVEL, H_DATA) = (
+    0, 1, 4, 5, 8, 12, 15, 19, 22, 25, 26)
+HEADER = 27
 MAX_FIELDS = 8
 
 
@@ -92,6 +98,9 @@ class FoldFields:
             raise ValueError(f"FoldFields: {len(parts)} folding parts, at most {MAX_FIELDS}")
         self.parts = parts
         self.partner_bits = np.zeros(PART_SLOTS)
+        self.own_slot = np.zeros(PART_SLOTS)
+        for k, p in enumerate(parts):
+            self.own_slot[p % PART_SLOTS] = k + 1
         for p, others in partners.items():
             self.partner_bits[p % PART_SLOTS] = sum(1 << parts.index(o) for o in others)
         # Each part's triangles (re-indexed to its own vertices) and the frames it is sampled in.
@@ -168,6 +177,7 @@ class FoldFields:
         head = np.zeros(B_FIELDS + HEADER * len(self.parts))
         head[B_N] = len(self.parts)
         head[B_PARTNERS:B_PARTNERS + PART_SLOTS] = self.partner_bits
+        head[B_OWN:B_OWN + PART_SLOTS] = self.own_slot
         chunks = [head]
         at = len(head)
         for k, part in enumerate(self.parts):
@@ -184,7 +194,13 @@ class FoldFields:
                 q1 = -q1  # the short way round
             head[h + H_Q1:h + H_Q1 + 4] = q1
             head[h + H_C1:h + H_C1 + 3] = b[k][1]
+            shift = b[k][1] - a[k][1]
+            head[h + H_SHIFT:h + H_SHIFT + 3] = shift
+            moved = (np.asarray(self.vertices[f1][self.verts[k]], dtype=np.float64)
+                     - np.asarray(self.vertices[f0][self.verts[k]], dtype=np.float64) - shift)
+            head[h + H_TRAVEL] = float(np.sqrt(np.einsum("ij,ij->i", moved, moved).max()))
             head[h + H_DATA] = at
-            chunks += [a[k][2], b[k][2]]
+            # The two ends side by side: a lookup reads both from one cache line.
+            chunks.append(np.stack([a[k][2], b[k][2]], axis=1).ravel())
             at += 2 * len(a[k][2])
         return np.concatenate(chunks)

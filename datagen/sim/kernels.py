@@ -36,6 +36,15 @@ OTHER_NONE = 0.75
 # A folding part's field (fold_near) counts a vertex this deep inside it as caught by it: deeper
 # is the body's own overlap at the joint, where no search decides better.
 FOLD_DEPTH = 0.03
+# ...and searches it once the field puts a folding part's facing surface this much within a
+# cell (the search's reach, where other_surface finds it): a margin for the field's error.
+FOLD_TRIGGER = 0.005
+# A folding part traps cloth closing face to face onto it (a thigh's underside onto the calf,
+# its front onto the belly): the lookup counts its surface where the normals are more than 107
+# degrees apart. Where the two meet at about a right angle (the crease at the hip) the part
+# guard's own search of the cell sees it; searching there at the lookup's word as well (with
+# FACING_COS) strained the fast kick's crotch, 0.36 % of its edges over their bound at 20x4.
+FOLD_FACING_COS = -0.3
 V8 = ti.types.ndarray(dtype=GUARD, ndim=1)
 F1 = ti.types.ndarray(dtype=REAL, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -1491,10 +1500,16 @@ def nearest_one(
     distance less OTHER_SURFACE_ZONE as the budget, no longer show it farther than the zone,
     and at once when its triangle is now of another part (a walk across the joint), so the
     vertex tracks the other surface before it can pass. A vertex with no facing surface within
-    the cell is not guarded: it waits for the frames' full search (SimOptions.search_every),
-    and a surface that comes from beyond the cell faster than that can still pass it (guarding
-    those too, against the odometer or the local bound, searched a walking t-shirt's tracked
-    vertices again several times a frame: 50 % more time).
+    the cell is not guarded in general: it waits for the frames' full search
+    (SimOptions.search_every), and a surface that comes from beyond the cell faster than that
+    can still pass it (guarding those too, against the odometer or the local bound, searched a
+    walking t-shirt's tracked vertices again several times a frame: 50 % more time). Where the
+    body folds across a joint (the body stage's flexion frames, the hip and knee: `fold`, the
+    fold fields from fold[fold_at], none where fold_at < 0 or they are empty), such a vertex
+    looks the parts folding onto its own up in their distance fields (fold_near) and is searched
+    once one closing face to face is within the cell; between lookups it keeps, in its guard
+    (G_SPEED < 0), how much farther they were and how fast they can close in, and is not looked
+    up again while that holds.
     """
     clear = False  # an untracked vertex provably far: not searched
     again = False  # a tracked vertex that another part may have come near: searched
@@ -1517,11 +1532,33 @@ def nearest_one(
                                         s_frame, shift)
             elif fold_at >= 0 and fold[fold_at + FF.B_N] > 0.0:
                 # Nothing faced it within a cell when searched, but a part folding onto its
-                # own may have come from farther since (fold_near).
-                f = faces[tri[i]]
-                a = lerp3(b0[f[0]], b1[f[0]], s)
-                nb = (lerp3(b0[f[1]], b1[f[1]], s) - a).cross(lerp3(b0[f[2]], b1[f[2]], s) - a)
-                again = fold_near(x[i], part - 1.0, nb, s_frame, fold, fold_at, max_dist)
+                # own may have come from farther since (fold_near), unless its last lookup
+                # still shows it farther than a cell.
+                own = ti.cast(fold[fold_at + FF.B_OWN + ti.cast(part - 1.0, ti.i32)
+                                   % FF.PART_SLOTS], ti.i32) - 1
+                if own >= 0:
+                    oh = fold_at + FF.B_FIELDS + FF.HEADER * own
+                    own_shift = vec3(fold[oh + FF.H_SHIFT], fold[oh + FF.H_SHIFT + 1],
+                                     fold[oh + FF.H_SHIFT + 2])
+                    held = False
+                    if g[G_SPEED] < 0.0 and g[G_TAG] == grid_tag:
+                        since = s_frame - g[G_TIME]
+                        closing = ((x[i] - vec3(g[0], g[1], g[2]) - own_shift * since).norm()
+                                   + g[G_ODO] * ti.abs(since))
+                        held = closing < -1.0 - g[G_SPEED]
+                    if not held:
+                        f = faces[tri[i]]
+                        a = lerp3(b0[f[0]], b1[f[0]], s)
+                        nb = (lerp3(b0[f[1]], b1[f[1]], s) - a).cross(
+                            lerp3(b0[f[2]], b1[f[2]], s) - a)
+                        r = fold_near(x[i], part - 1.0, nb, s_frame, fold, fold_at, max_dist,
+                                      own_shift)
+                        if r[0] > 0.0:
+                            again = True
+                        else:
+                            p = x[i]
+                            guard[i] = GUARD(p[0], p[1], p[2], r[2], grid_tag, s_frame,
+                                             -1.0 - r[1], g[G_OTHER])
     searched = which == SEARCH_ALL or (which == SEARCH_UNTRACKED) == (tri[i] < 0) or again
     if w[i] > 0.0 and searched and not clear:
         p = x[i]
@@ -1595,18 +1632,27 @@ def quat_matrix(q: ti.math.vec4) -> ti.types.matrix(3, 3, REAL):
 
 @ti.func
 def fold_near(p: vec3, part: REAL, nb: vec3, s_frame: REAL, fold: F1, at: ti.i32,
-              reach: REAL) -> ti.i32:
+              reach: REAL, own_shift: vec3) -> vec3:
     """Whether the surface of a body part that folds onto `part` in this frame (the fold
-    fields, datagen.sim.fold_fields, from fold[at]) is within `reach` of p and faces the
-    tracked triangle's normal nb (FACING_COS), or has p inside it by less than FOLD_DEPTH: one
-    transform into the part's own frame, interpolated at the frame fraction s_frame, and one
-    trilinear lookup per folding part."""
+    fields, datagen.sim.fold_fields, from fold[at]) is within FOLD_TRIGGER of `reach` of p
+    and faces the tracked triangle's normal nb (FOLD_FACING_COS), or has p inside it by less than
+    FOLD_DEPTH: one transform into the part's own frame, interpolated at the frame fraction
+    s_frame, and one trilinear lookup per folding part. Returned as (found, budget, speed):
+    found 1 or 0; else how much farther than that the folding parts are (negative where one is
+    near but not facing), and how fast (per frame) they can close in on a vertex that moves
+    with its own part (`own_shift`, its centre's motion over the frame): the differences of
+    their centres' motions from it plus their vertices' travel about their centres."""
     found = 0
+    budget = ti.cast(1.0, REAL)
+    speed = ti.cast(0.0, REAL)
     n_fields = ti.cast(fold[at + FF.B_N], ti.i32)
     bits = ti.cast(fold[at + FF.B_PARTNERS + ti.cast(part, ti.i32) % FF.PART_SLOTS], ti.i32)
     for k in range(n_fields):
         if found == 0 and (bits >> k) & 1 != 0:
             h = at + FF.B_FIELDS + FF.HEADER * k
+            shift = vec3(fold[h + FF.H_SHIFT], fold[h + FF.H_SHIFT + 1],
+                         fold[h + FF.H_SHIFT + 2])
+            speed = ti.max(speed, (shift - own_shift).norm() + fold[h + FF.H_TRAVEL])
             q0 = ti.math.vec4(fold[h + FF.H_Q0], fold[h + FF.H_Q0 + 1], fold[h + FF.H_Q0 + 2],
                               fold[h + FF.H_Q0 + 3])
             q1 = ti.math.vec4(fold[h + FF.H_Q1], fold[h + FF.H_Q1 + 1], fold[h + FF.H_Q1 + 2],
@@ -1623,28 +1669,38 @@ def fold_near(p: vec3, part: REAL, nb: vec3, s_frame: REAL, fold: F1, at: ti.i32
             ny = ti.cast(fold[h + FF.H_DIMS + 1], ti.i32)
             nz = ti.cast(fold[h + FF.H_DIMS + 2], ti.i32)
             i0 = ti.cast(ti.floor(g), ti.i32)
-            if (i0[0] >= 0 and i0[0] < nx - 1 and i0[1] >= 0 and i0[1] < ny - 1
-                    and i0[2] >= 0 and i0[2] < nz - 1):
+            top = vec3(ti.cast(nx - 1, REAL), ti.cast(ny - 1, REAL), ti.cast(nz - 1, REAL))
+            if (i0[0] < 0 or i0[0] >= nx - 1 or i0[1] < 0 or i0[1] >= ny - 1
+                    or i0[2] < 0 or i0[2] >= nz - 1):
+                # Outside the grid: the part is FIELD_MARGIN inside it in every frame sampled.
+                out = ti.max(-g, 0.0, g - top).norm() / fold[h + FF.H_INV_CELL]
+                budget = ti.min(budget, out + FF.FIELD_MARGIN - reach + FOLD_TRIGGER)
+            else:
                 t = g - ti.cast(i0, REAL)
                 data = at + ti.cast(fold[h + FF.H_DATA], ti.i32)
-                size = nx * ny * nz
                 d = ti.cast(0.0, REAL)
                 grad = vec3(0.0)
                 for corner in ti.static(range(8)):
                     dx, dy, dz = corner >> 2, (corner >> 1) & 1, corner & 1
                     cid = ((i0[0] + dx) * ny + i0[1] + dy) * nz + i0[2] + dz
-                    val = fold[data + cid] + (fold[data + size + cid] - fold[data + cid]) * s_frame
+                    v0 = fold[data + 2 * cid]
+                    val = v0 + (fold[data + 2 * cid + 1] - v0) * s_frame
                     wx = dx * t[0] + (1 - dx) * (1.0 - t[0])
                     wy = dy * t[1] + (1 - dy) * (1.0 - t[1])
                     wz = dz * t[2] + (1 - dz) * (1.0 - t[2])
                     d += wx * wy * wz * val
                     grad += val * vec3((2 * dx - 1) * wy * wz, (2 * dy - 1) * wx * wz,
                                        (2 * dz - 1) * wx * wy)
-                if d > -FOLD_DEPTH and d < reach:
+                budget = ti.min(budget, d - reach + FOLD_TRIGGER)
+                if d > -FOLD_DEPTH and d < reach - FOLD_TRIGGER:
                     n_world = rot @ grad
-                    if n_world.dot(nb) < FACING_COS * n_world.norm() * nb.norm():
+                    if n_world.dot(nb) < FOLD_FACING_COS * n_world.norm() * nb.norm():
                         found = 1
-    return found
+                    else:
+                        budget = -1.0
+                elif d <= -FOLD_DEPTH:
+                    budget = -1.0
+    return vec3(ti.cast(found, REAL), budget, speed)
 
 
 @ti.func

@@ -1,0 +1,68 @@
+"""The folding parts' distance fields (datagen.sim.fold_fields): frames, values, blob layout."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from datagen.sim import fold_fields as FF
+from datagen.sim.scenes import icosphere
+
+
+def _ball_and_plate(n_frames: int = 8):
+    """A 10 cm ball (part 0) turning 6 degrees a frame about z and moving 3 cm a frame along
+    x, over a static square plate (part 1) 40 cm wide at z = 0."""
+    bv, bf = icosphere(0.1, subdivisions=3)
+    pv = np.array([[-0.2, -0.2, 0.0], [0.2, -0.2, 0.0], [0.2, 0.2, 0.0], [-0.2, 0.2, 0.0]])
+    pf = np.array([[0, 1, 2], [0, 2, 3]])
+    centres = np.array([[0.03 * f, 0.0, 0.25] for f in range(n_frames)])
+    rots = [Rotation.from_euler("z", 6.0 * f, degrees=True) for f in range(n_frames)]
+    frames = np.array([np.concatenate([rots[f].apply(bv) + centres[f], pv])
+                       for f in range(n_frames)])
+    faces = np.concatenate([bf, pf + len(bv)])
+    parts = np.r_[np.zeros(len(bf), int), np.ones(len(pf), int)]
+    return frames, faces, parts, centres, rots
+
+
+def test_fields_run_in_and_just_before_the_fold_frames_only():
+    frames, faces, parts, *_ = _ball_and_plate()
+    fields = FF.FoldFields(frames, faces, parts, frozenset({5}), ((("ball",), ("plate",)),),
+                           {"ball": 0, "plate": 1})
+    active = [f0 for f0 in range(7) if fields.blob(f0, f0 + 1) is not None]
+    # FOLD_LEAD_FRAMES (2) frames before the fold frame 5, and the frame that ends in it.
+    assert active == [2, 3, 4, 5]
+
+
+def test_a_fields_values_are_the_distance_to_its_part_in_the_parts_own_frame():
+    frames, faces, parts, centres, rots = _ball_and_plate()
+    fields = FF.FoldFields(frames, faces, parts, frozenset({4}), ((("ball",), ("plate",)),),
+                           {"ball": 0, "plate": 1})
+    blob = fields.blob(3, 4)
+    assert blob[FF.B_N] == 2
+    # Each part's partners are the other side's fields, its own slot its own field.
+    assert blob[FF.B_PARTNERS + 0] == 2 and blob[FF.B_PARTNERS + 1] == 1
+    assert blob[FF.B_OWN + 0] == 1 and blob[FF.B_OWN + 1] == 2
+    h = FF.B_FIELDS  # the ball's header
+    assert blob[h + FF.H_PART] == 0
+    # The frame's two ends: the ball's rotation since the first frame, its centre, its motion.
+    for q_at, c_at, f in ((FF.H_Q0, FF.H_C0, 3), (FF.H_Q1, FF.H_C1, 4)):
+        w, x, y, z = blob[h + q_at:h + q_at + 4]
+        assert Rotation.from_quat([x, y, z, w]).approx_equal(rots[f], atol=1e-6)
+        np.testing.assert_allclose(blob[h + c_at:h + c_at + 3], centres[f], atol=1e-3)
+    np.testing.assert_allclose(blob[h + FF.H_SHIFT:h + FF.H_SHIFT + 3], [0.03, 0.0, 0.0],
+                               atol=1e-6)
+    # Turning 6 degrees about its centre moves the ball's equator 2 sin(3 deg) x 10 cm.
+    assert abs(blob[h + FF.H_TRAVEL] - 0.2 * np.sin(np.radians(3.0))) < 1e-3
+    # The values: grid points' signed distance to the ball (negative inside), both ends side by
+    # side; the ball in its own frame is the same ball, so both ends agree.
+    dims = blob[h + FF.H_DIMS:h + FF.H_DIMS + 3].astype(int)
+    origin = blob[h + FF.H_ORIGIN:h + FF.H_ORIGIN + 3]
+    data = blob[int(blob[h + FF.H_DATA]):][:2 * dims.prod()].reshape(*dims, 2)
+    axes = [origin[d] + np.arange(dims[d]) / blob[h + FF.H_INV_CELL] for d in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    exact = np.linalg.norm(grid, axis=-1) - 0.1
+    near = np.abs(exact) < 0.03
+    assert np.abs(data[..., 0][near] - exact[near]).max() < 2e-3  # the mesh is not a sphere
+    np.testing.assert_allclose(data[..., 0], data[..., 1], atol=1e-5)
+    # The grid reaches FIELD_MARGIN beyond the ball on every side.
+    assert origin.max() <= -0.1 - FF.FIELD_MARGIN + 1e-9
