@@ -117,11 +117,10 @@ class FoldFields:
         # A fixed grid per part over every sampled frame's surface in the part's own frame.
         self.boxes = []
         for k in range(len(parts)):
-            ref = vertices[0][self.verts[k]]
             lo = np.full(3, np.inf)
             hi = np.full(3, -np.inf)
             for f in self.frames:
-                local = self._local(k, f, ref)
+                local = self._fit(k, f)[2]
                 lo = np.minimum(lo, local.min(axis=0))
                 hi = np.maximum(hi, local.max(axis=0))
             lo -= FIELD_MARGIN
@@ -131,13 +130,13 @@ class FoldFields:
         self._cache: OrderedDict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = (
             OrderedDict())
 
-    def _local(self, k: int, f: int, ref: np.ndarray | None = None) -> np.ndarray:
-        """Part k's vertices at frame f in its own frame (the first frame's pose, centred)."""
-        if ref is None:
-            ref = self.vertices[0][self.verts[k]]
+    def _fit(self, k: int, f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Part k's frame at body frame f, its rigid fit to the first frame (rotation, centre),
+        and its vertices in that frame (the first frame's pose, centred)."""
+        ref = np.asarray(self.vertices[0][self.verts[k]], dtype=np.float64)
         cur = np.asarray(self.vertices[f][self.verts[k]], dtype=np.float64)
-        rot, c_ref, c_cur = _kabsch(np.asarray(ref, dtype=np.float64), cur)
-        return (cur - c_cur) @ rot
+        rot, _, c_cur = _kabsch(ref, cur)
+        return rot, c_cur, (cur - c_cur) @ rot
 
     def _sample(self, f: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Per part: (quaternion, centre, field values) at body frame f."""
@@ -148,10 +147,7 @@ class FoldFields:
             return self._cache[f]
         out = []
         for k in range(len(self.parts)):
-            ref = np.asarray(self.vertices[0][self.verts[k]], dtype=np.float64)
-            cur = np.asarray(self.vertices[f][self.verts[k]], dtype=np.float64)
-            rot, _, c_cur = _kabsch(ref, cur)
-            local = (cur - c_cur) @ rot
+            rot, c_cur, local = self._fit(k, f)
             lo, dims = self.boxes[k]
             axes = [lo[d] + FIELD_CELL * np.arange(dims[d]) for d in range(3)]
             grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
