@@ -384,6 +384,28 @@ def test_bent_elbows_are_separated_and_reported_per_joint(body_model):
     wave = build("wave").self_collision.flexion_overlap_by_joint
     assert set(wave) == {"elbow_r"}, wave
 
+def test_the_rest_body_does_not_depend_on_torchs_thread_count(body_model):
+    """Anny's blendshapes are a torch computation whose reductions split by thread: with two
+    threads a subject's rest shape rounded 7e-18 m away from one thread's, and a Dask worker
+    (torch on one thread) then wrote cloth up to 2.4 cm from a local process's after 6 frames
+    (chaos amplifies it). The model runs on one thread, so both give the same body bit for bit,
+    and the caller's thread count is left as it was."""
+    import torch
+
+    from datagen.body.anny_model import NEUTRAL_SHAPE
+
+    threads = torch.get_num_threads()
+    bodies = []
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            body_model._subjects.clear()  # the subject cache would hand back the first
+            bodies.append(body_model.rest_body("female", NEUTRAL_SHAPE.copy()).vertices)
+            assert torch.get_num_threads() == n
+    finally:
+        torch.set_num_threads(threads)
+    np.testing.assert_array_equal(bodies[0], bodies[1])
+
 
 def test_a_sequences_body_does_not_depend_on_the_subjects_built_before_it(body_model):
     """The self-collision detector's notion of which triangles are local to each other comes

@@ -231,11 +231,17 @@ class AnnyBody:
         outside = bool(np.any((shape < 0.0) | (shape > 1.0)))
         previous = model.extrapolate_phenotypes
         model.extrapolate_phenotypes = outside
+        # On one thread, whatever the process's: torch's reductions split by thread, so the
+        # rest shape rounded differently with two threads than in a Dask worker (which runs
+        # torch on one), and the cloth, chaotic, took that 1e-7 to 2.4 cm apart in 6 frames.
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
         try:
             with torch.no_grad():
                 out = model(phenotype_kwargs=kwargs)
         finally:
             model.extrapolate_phenotypes = previous
+            torch.set_num_threads(threads)
         rest = out["rest_vertices"][0].double().cpu().numpy()
         heads = out["rest_bone_heads"][0].double().cpu().numpy()
         n_bones = len(self.bone_labels)
