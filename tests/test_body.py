@@ -384,6 +384,7 @@ def test_bent_elbows_are_separated_and_reported_per_joint(body_model):
     wave = build("wave").self_collision.flexion_overlap_by_joint
     assert set(wave) == {"elbow_r"}, wave
 
+
 def test_the_rest_body_does_not_depend_on_torchs_thread_count(body_model):
     """Anny's blendshapes are a torch computation whose reductions split by thread: with two
     threads a subject's rest shape rounded 7e-18 m away from one thread's, and a Dask worker
