@@ -251,7 +251,9 @@ def body(
         f"{spec.motion.action}, {spec.motion.frames} frames; self-collision: "
         f"{sc.frames_with_contact} frames with contact, {sc.repaired_vertices} vertex repairs"
         + (f"; skinning sank parts into each other across a flexed joint in "
-           f"{len(sc.flexion_overlap_frames)} frames (up to "
+           f"{len(sc.flexion_overlap_frames)} frames ("
+           + ", ".join(f"{j} {len(f)}" for j, f in sc.flexion_overlap_by_joint.items())
+           + "; up to "
            f"{sc.flexion_overlap_max_depth * 100:.1f} cm deep), separated with "
            f"{sc.flexion_residual_pairs} triangle pairs left crossing"
            if sc.flexion_overlap_frames else "")

@@ -90,11 +90,14 @@ class SelfCollisionReport:
     thinner_retries: int = 0
     # Frames (of `vertices`, lead-in included) where skinning sank a part into its neighbour
     # across a flexed joint (datagen.body.parts.FLEXION_SIDES: a thigh into the lower torso, a
-    # calf into its thigh), with the largest overlap's extent and depth, estimated as for
-    # self-collisions; the body stage then moves both surfaces to a shared contact surface
-    # (datagen.body.flexion): vertices moved, the largest move, and the frames and triangle
-    # pairs that still intersect afterwards (cloth caught there cannot be outside the body).
+    # calf into its thigh, a forearm into its upper arm), those frames per joint (by
+    # parts.FLEXION_JOINTS' names, only joints that fold), with the largest overlap's extent
+    # and depth, estimated as for self-collisions; the body stage then moves both surfaces to a
+    # shared contact surface (datagen.body.flexion): vertices moved, the largest move, and the
+    # frames and triangle pairs that still intersect afterwards (cloth caught there cannot be
+    # outside the body).
     flexion_overlap_frames: list[int] = field(default_factory=list)
+    flexion_overlap_by_joint: dict[str, list[int]] = field(default_factory=dict)
     flexion_overlap_max_extent: float = 0.0  # metres
     flexion_overlap_max_depth: float = 0.0  # metres
     flexion_separated_vertices: int = 0  # distinct (frame, vertex) moved
@@ -116,6 +119,8 @@ class SelfCollisionReport:
             "arm_clearance_frames": self.arm_clearance_frames,
             "thinner_retries": self.thinner_retries,
             "flexion_overlap_frames": list(self.flexion_overlap_frames),
+            "flexion_overlap_by_joint": {k: list(v) for k, v in
+                                         self.flexion_overlap_by_joint.items()},
             "flexion_overlap_max_extent": self.flexion_overlap_max_extent,
             "flexion_overlap_max_depth": self.flexion_overlap_max_depth,
             "flexion_separated_vertices": self.flexion_separated_vertices,

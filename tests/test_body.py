@@ -287,6 +287,10 @@ def test_flexed_hip_and_knee_are_separated_at_a_shared_contact_surface(body_mode
     assert min(found) >= int(0.55 * 30) and max(found) <= int(1.45 * 30), found
     assert report.flexion_overlap_max_extent > 0.10 and report.flexion_overlap_max_depth > 0.05
     assert json.loads(json.dumps(report.as_dict()))["flexion_overlap_frames"] == found
+    # Per joint: the kicking leg's hip and knee, whose frames together are the overlap frames.
+    by_joint = report.flexion_overlap_by_joint
+    assert set(by_joint) == {"hip_r", "knee_r"}, by_joint
+    assert sorted(set().union(*map(set, by_joint.values()))) == found
 
     rest = kick.rest
     skinned = body_model.pose(rest, kick.poses, kick.trans).vertices
@@ -330,6 +334,55 @@ def test_flexed_hip_and_knee_are_separated_at_a_shared_contact_surface(body_mode
     assert left.flexion_residual_pairs == pairs_before
     walk = build("walk", {}, 45).self_collision
     assert walk.flexion_overlap_frames == [] and walk.flexion_separated_vertices == 0
+
+
+def test_bent_elbows_are_separated_and_reported_per_joint(body_model):
+    """A run's swinging arms bend the elbows to 100 degrees, where skinning sinks the forearm
+    into the biceps (about 1 cm at the forearm's deepest vertex). The body stage reports those
+    frames under each elbow and separates the two parts there as at the hip and knee; a wave's
+    arm, lifted and bent on one side only, folds at that elbow only."""
+    import igl
+
+    from datagen.body.flexion import FlexionSeparator
+    from datagen.body.sequence import build_body_sequence
+    from datagen.motion.load import motion_from_spec
+    from datagen.spec import MotionSpec, SubjectSpec
+
+    def build(action, config=None):
+        spec = MotionSpec(action=action, frames=45)
+        return build_body_sequence(SubjectSpec(gender="male"), motion_from_spec(spec, None), 0,
+                                   body_model, config or BodyConfig())
+
+    run = build("run")
+    report = run.self_collision
+    by_joint = report.flexion_overlap_by_joint
+    assert len(by_joint.get("elbow_l", [])) > 10 and len(by_joint.get("elbow_r", [])) > 10
+    assert report.flexion_residual_pairs == 0
+
+    rest = run.rest
+    skinned = body_model.pose(rest, run.poses, run.trans).vertices
+    faces = rest.faces.astype(np.int64)
+    separator = FlexionSeparator(rest, 0.01)
+
+    def forearm_depth(v, side):
+        """How deep the forearm's deepest vertex is inside its upper arm (0 if none is)."""
+        v = v.astype(np.float64)
+        forearm = np.flatnonzero(rest.part_labels == PART_INDEX[f"forearm_{side}"])
+        probe = v[forearm] + 1e-3 * separator.vertex_normals(v)[forearm]
+        inside = forearm[igl.fast_winding_number(v, faces, probe) > 0.5]
+        upper = faces[separator.tri_part == PART_INDEX[f"upperarm_{side}"]]
+        if len(inside) == 0:
+            return 0.0
+        sd, *_ = igl.signed_distance(v[inside], v, upper)
+        return float(max(0.0, -sd.min()))
+
+    for side in ("l", "r"):
+        frames = by_joint[f"elbow_{side}"]
+        before = max(forearm_depth(skinned[f], side) for f in frames)
+        after = max(forearm_depth(run.vertices[f], side) for f in frames)
+        assert before > 0.005 and after < 0.001, (side, before, after)
+    wave = build("wave").self_collision.flexion_overlap_by_joint
+    assert set(wave) == {"elbow_r"}, wave
 
 
 def test_the_rest_body_does_not_depend_on_torchs_thread_count(body_model):

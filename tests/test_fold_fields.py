@@ -26,7 +26,7 @@ def _ball_and_plate(n_frames: int = 8):
 
 def test_fields_run_in_and_just_before_the_fold_frames_only():
     frames, faces, parts, *_ = _ball_and_plate()
-    fields = FF.FoldFields(frames, faces, parts, frozenset({5}), ((("ball",), ("plate",)),),
+    fields = FF.FoldFields(frames, faces, parts, [(("ball",), ("plate",), frozenset({5}))],
                            {"ball": 0, "plate": 1})
     active = [f0 for f0 in range(7) if fields.blob(f0, f0 + 1) is not None]
     # FOLD_LEAD_FRAMES (2) frames before the fold frame 5, and the frame that ends in it.
@@ -35,7 +35,7 @@ def test_fields_run_in_and_just_before_the_fold_frames_only():
 
 def test_a_fields_values_are_the_distance_to_its_part_in_the_parts_own_frame():
     frames, faces, parts, centres, rots = _ball_and_plate()
-    fields = FF.FoldFields(frames, faces, parts, frozenset({4}), ((("ball",), ("plate",)),),
+    fields = FF.FoldFields(frames, faces, parts, [(("ball",), ("plate",), frozenset({4}))],
                            {"ball": 0, "plate": 1})
     blob = fields.blob(3, 4)
     assert blob[FF.B_N] == 2
@@ -66,3 +66,39 @@ def test_a_fields_values_are_the_distance_to_its_part_in_the_parts_own_frame():
     np.testing.assert_allclose(data[..., 0], data[..., 1], atol=1e-5)
     # The grid reaches FIELD_MARGIN beyond the ball on every side.
     assert origin.max() <= -0.1 - FF.FIELD_MARGIN + 1e-9
+
+
+def test_a_frame_carries_the_fields_of_the_joints_folding_in_it_only():
+    """A running arm's elbows fold in most frames and its hips in a few: the legs' fields are
+    sampled and looked up only where the hips fold. Here the ball folds onto the plate at frame
+    6 and onto a second plate (part 2) at frame 3: a frame's blob lists the parts of the joints
+    folding in it or just after it, with partners and own slots of those alone."""
+    frames, faces, parts, *_ = _ball_and_plate()
+    second = frames[:, -4:] + np.array([0.0, 0.0, 0.5])
+    frames = np.concatenate([frames, second], axis=1)
+    faces = np.concatenate([faces, faces[-2:] + 4])
+    parts = np.r_[parts, 2, 2]
+    names = {"ball": 0, "plate": 1, "lid": 2}
+    fields = FF.FoldFields(frames, faces, parts,
+                           [(("ball",), ("plate",), frozenset({6})),
+                            (("ball",), ("lid",), frozenset({3}))], names)
+
+    def slots(f0):
+        blob = fields.blob(f0, f0 + 1)
+        if blob is None:
+            return None
+        n = int(blob[FF.B_N])
+        return [int(blob[FF.B_FIELDS + FF.HEADER * k + FF.H_PART]) for k in range(n)], blob
+
+    # A frame f0 -> f0 + 1 carries a joint folding at f0 to f0 + 1 + FOLD_LEAD_FRAMES.
+    assert slots(0)[0] == [0, 2] and slots(2)[0] == [0, 2]
+    assert slots(3)[0] == [0, 1, 2]  # in the lid's fold and leading into the plate's
+    assert slots(4)[0] == [0, 1] and slots(6)[0] == [0, 1]
+    order, blob = slots(4)
+    # The ball's partner is the plate's slot (bit 1), the plate's the ball's (bit 0); the lid,
+    # not folding, has neither partners nor a slot.
+    assert blob[FF.B_PARTNERS + 0] == 2 and blob[FF.B_PARTNERS + 1] == 1
+    assert blob[FF.B_PARTNERS + 2] == 0 and blob[FF.B_OWN + 2] == 0
+    assert blob[FF.B_OWN + 0] == 1 and blob[FF.B_OWN + 1] == 2
+    # In frame 3 the ball folds onto both: its partners are the plate's and the lid's slots.
+    assert slots(3)[1][FF.B_PARTNERS + 0] == 2 + 4

@@ -272,8 +272,9 @@ def _plate_folding_onto_trouser_leg(fold: bool) -> list[int]:
     vertices = np.array([np.concatenate([lv, pv @ rotation(a).T + hinge]) for a in angles])
     faces = np.concatenate([lf, pf + len(lv)]).astype(np.int32)
     face_parts = np.r_[np.zeros(len(lf), int), np.ones(len(pf), int)]
-    fields = FoldFields(vertices, faces, face_parts, frozenset(range(len(angles))),
-                        ((("limb",), ("plate",)),), {"limb": 0, "plate": 1}) if fold else None
+    fields = FoldFields(vertices, faces, face_parts,
+                        [(("limb",), ("plate",), frozenset(range(len(angles))))],
+                        {"limb": 0, "plate": 1}) if fold else None
     track = ColliderTrack(vertices, faces, np.ones(len(faces), bool), face_parts=face_parts,
                           fold_fields=fields)
     leg = tube(0.07, 0.35, 48, 18, top=0.45)

@@ -348,13 +348,16 @@ def test_qa_gate_names_the_bodys_residual_flexion_overlap_at_the_breach_frame():
     record = made.record
     report = record.body.self_collision
     report.flexion_overlap_frames = [made.lead_in + k for k in range(2, 8)]
+    report.flexion_overlap_by_joint = {"hip_l": [made.lead_in + k for k in range(2, 8)],
+                                       "elbow_r": [made.lead_in + k for k in range(6, 8)]}
     report.flexion_residual_frames = [made.lead_in + 4, made.lead_in + 5]
     report.flexion_overlap_max_depth = 0.0844
     report.flexion_residual_pairs = 7
     record.sim.qa["over_strain_share"][4] = 0.004
     reason = reject_over_qa_bounds(record).reason
+    # It names the joints folding in the breach's frame: the left hip, not the right elbow.
     assert reason.endswith("; at frame 4 the body's parts still intersect across a flexed joint "
-                           "(hip or knee; skinning sank them up to 8.4 cm deep in this "
+                           "(hip_l; skinning sank them up to 8.4 cm deep in this "
                            "sequence, and separating them left 7 triangle pairs crossing)")
     # An overlap the body stage separated is not blamed: only what is left of it.
     other = sf.make_record(1).record

@@ -56,22 +56,24 @@ class FlexionSeparator:
         self.rest_centroids = self.rest_vertices[self.faces].mean(axis=1)
         n_vertices = len(labels)
         # One group per side that takes part: its vertices, every triangle not its own (the
-        # nearest of which must belong to a partner for the vertex to be corrected), partners.
-        partners: dict[tuple[int, ...], set[int]] = {}
-        for side_a, side_b in FLEXION_SIDES:
+        # nearest of which must belong to a partner for the vertex to be corrected), and per
+        # joint it folds at (FLEXION_SIDES' index) the partner side's parts.
+        partners: dict[tuple[int, ...], dict[int, tuple[int, ...]]] = {}
+        for joint, (side_a, side_b) in enumerate(FLEXION_SIDES):
             a = tuple(PART_INDEX[p] for p in side_a)
             b = tuple(PART_INDEX[p] for p in side_b)
-            partners.setdefault(a, set()).update(b)
-            partners.setdefault(b, set()).update(a)
+            partners.setdefault(a, {})[joint] = b
+            partners.setdefault(b, {})[joint] = a
         self.groups = [
             (np.flatnonzero(np.isin(labels, own)),
              np.flatnonzero(~np.isin(self.tri_part, own)),
-             np.array(sorted(other)))
-            for own, other in partners.items()
+             by_joint)
+            for own, by_joint in partners.items()
         ]
-        # Each group's partner vertices, whose posed box bounds the candidates (fixed labels).
-        self.partner_vertices = [np.flatnonzero(np.isin(labels, other))
-                                 for _, _, other in self.groups]
+        # Each group's partner vertices per joint, whose posed box bounds the candidates.
+        self.partner_vertices = [{j: np.flatnonzero(np.isin(labels, other))
+                                  for j, other in by_joint.items()}
+                                 for _, _, by_joint in self.groups]
         # Vertex normals as one sparse product: vertex-by-triangle incidence.
         rows = self.faces.ravel()
         cols = np.repeat(np.arange(len(self.faces)), 3)
@@ -97,18 +99,24 @@ class FlexionSeparator:
         vn = self.incidence @ fn
         return vn / (np.linalg.norm(vn, axis=1, keepdims=True) + 1e-20)
 
-    def corrections(self, v: np.ndarray) -> np.ndarray:
+    def corrections(self, v: np.ndarray, joints: frozenset[int]) -> np.ndarray:
         """(V, 3) one linearised step for every vertex inside, or within the gap of, its
-        partner side; zero elsewhere."""
+        partner side across one of `joints` (FLEXION_SIDES' indices); zero elsewhere."""
         import igl
 
         gap = self.gap
         vn = self.vertex_normals(v)
         c = np.zeros_like(v)
         # Only vertices inside their partners' box (grown by the gap) can need a correction.
-        candidates = []
-        for (own, _, _), partner_vertices in zip(self.groups, self.partner_vertices, strict=True):
-            pv = v[partner_vertices]
+        candidates, active = [], []
+        for (own, _, by_joint), partner_vertices in zip(self.groups, self.partner_vertices,
+                                                       strict=True):
+            folding = [j for j in by_joint if j in joints]
+            active.append(np.array(sorted({p for j in folding for p in by_joint[j]})))
+            if not folding:
+                candidates.append(own[:0])
+                continue
+            pv = v[np.concatenate([partner_vertices[j] for j in folding])]
             lo, hi = pv.min(axis=0) - gap, pv.max(axis=0) + gap
             candidates.append(own[np.all((v[own] >= lo) & (v[own] <= hi), axis=1)])
         union = np.unique(np.concatenate(candidates))
@@ -118,7 +126,7 @@ class FlexionSeparator:
         winding[union] = igl.fast_winding_number(v, self.faces, v[union] + _PROBE_OUT * vn[union])
         reach = _MAX_DEPTH + gap
         centroids = v[self.faces].mean(axis=1)
-        for (_, foreign, partners), sel in zip(self.groups, candidates, strict=True):
+        for (_, foreign, _), partners, sel in zip(self.groups, active, candidates, strict=True):
             if len(sel) == 0:
                 continue
             p = v[sel]
@@ -143,12 +151,13 @@ class FlexionSeparator:
             c[sel[move]] += ((gap - sd[move]) / g2)[:, None] * g
         return c
 
-    def separate(self, frame_vertices: np.ndarray) -> np.ndarray:
-        """(V, 3) offsets that separate the flexed parts in one posed frame."""
+    def separate(self, frame_vertices: np.ndarray, joints: frozenset[int]) -> np.ndarray:
+        """(V, 3) offsets that separate the parts flexed at `joints` (FLEXION_SIDES' indices)
+        in one posed frame."""
         v0 = np.asarray(frame_vertices, dtype=np.float64)
         offsets = np.zeros_like(v0)
         for _ in range(_ITERATIONS):
-            c = self.corrections(v0 + offsets)
+            c = self.corrections(v0 + offsets, joints)
             held = np.any(c != 0.0, axis=1)
             if not held.any():
                 break
@@ -163,14 +172,15 @@ class FlexionSeparator:
 
 
 def separate_flexed_parts(
-    vertices: np.ndarray, rest: RestBody, frames: np.ndarray, gap: float
+    vertices: np.ndarray, rest: RestBody, frames: dict[int, frozenset[int]], gap: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sparse offsets (frames, vertices, offsets) for the given frames of `vertices` (F, V, 3),
-    which is modified in place."""
+    each with the joints to separate in it (FLEXION_SIDES' indices); `vertices` is modified in
+    place."""
     separator = FlexionSeparator(rest, gap)
     rep_f, rep_v, rep_o = [], [], []
-    for f in np.asarray(frames, dtype=np.int64):
-        off = separator.separate(vertices[f])
+    for f in sorted(frames):
+        off = separator.separate(vertices[f], frames[f])
         moved = np.flatnonzero(np.any(off != 0.0, axis=1))
         vertices[f, moved] += off[moved].astype(vertices.dtype)
         rep_f.append(np.full(len(moved), f, dtype=np.int32))

@@ -124,22 +124,37 @@ SOLVABLE_PAIRS = frozenset(
 
 # Parts joined at a joint that linear blend skinning sinks into each other at strong flexion: a
 # thigh into the lower torso (a kick's chamber, a squat), a calf into its thigh (a deep knee
-# bend). They are skeleton neighbours, so the self-collision repair leaves them alone; the body
-# stage moves both surfaces to a shared contact surface instead (datagen.body.flexion). Each
-# entry is two sides, each one or more parts. Triangles closer than FLEXION_REST_RADIUS at rest
-# are the skin bending at the joint, not an overlap.
+# bend), a forearm into its biceps (a runner's or a waving arm's bent elbow: 2 cm deep in
+# `make dataset`'s run). They are skeleton neighbours, so the self-collision repair leaves them
+# alone; the body stage moves both surfaces to a shared contact surface instead
+# (datagen.body.flexion). Each entry is two sides, each one or more parts, and is named by its
+# joint in FLEXION_JOINTS. Triangles closer than FLEXION_REST_RADIUS at rest are the skin
+# bending at the joint, not an overlap.
 _LOWER_TORSO = ("pelvis", "spine_lower")
 FLEXION_SIDES: tuple[tuple[tuple[str, ...], tuple[str, ...]], ...] = (
     (_LOWER_TORSO, ("thigh_l",)),
     (_LOWER_TORSO, ("thigh_r",)),
     (("thigh_l",), ("shin_l",)),
     (("thigh_r",), ("shin_r",)),
+    (("upperarm_l",), ("forearm_l",)),
+    (("upperarm_r",), ("forearm_r",)),
 )
+FLEXION_JOINTS: tuple[str, ...] = ("hip_l", "hip_r", "knee_l", "knee_r", "elbow_l", "elbow_r")
 # The same as part pairs, for the self-collision detector.
 FLEXION_PAIRS: tuple[tuple[str, str], ...] = tuple(
     (a, b) for side_a, side_b in FLEXION_SIDES for a in side_a for b in side_b
 )
 FLEXION_REST_RADIUS = 0.08  # metres
+
+
+def flexion_joint(part_a: int, part_b: int) -> int:
+    """The index in FLEXION_SIDES (and FLEXION_JOINTS) of the joint across which two parts (by
+    PART_INDEX) fold onto each other."""
+    names = {PART_NAMES[part_a], PART_NAMES[part_b]}
+    for joint, (side_a, side_b) in enumerate(FLEXION_SIDES):
+        if any(names == {a, b} for a in side_a for b in side_b):
+            return joint
+    raise ValueError(f"{sorted(names)} do not fold across one of {FLEXION_JOINTS}")
 
 # Which part yields in a repair: the first of a pair in this order moves (both thighs share).
 MOVABLE_ORDER = ("forearm_l", "forearm_r", "upperarm_l", "upperarm_r", "thigh_l", "thigh_r")

@@ -9,7 +9,13 @@ import numpy as np
 from datagen.body.arm_clearance import clear_arms
 from datagen.body.base import BodyModel
 from datagen.body.flexion import separate_flexed_parts
-from datagen.body.parts import FLEXION_PAIRS, FLEXION_REST_RADIUS, PART_INDEX
+from datagen.body.parts import (
+    FLEXION_JOINTS,
+    FLEXION_PAIRS,
+    FLEXION_REST_RADIUS,
+    PART_INDEX,
+    flexion_joint,
+)
 from datagen.body.selfcollision import (
     LOCAL_RADIUS,
     SelfCollisionDetector,
@@ -120,6 +126,11 @@ def separate_flexion(vertices: np.ndarray, rest: RestBody, config: BodyConfig,
     det = _detector(rest, pairs=FLEXION_PAIRS, local_radius=FLEXION_REST_RADIUS)
     contacts = det.detect(vertices)
     report.flexion_overlap_frames = sorted({int(c.frame) for c in contacts})
+    by_joint: dict[int, set[int]] = defaultdict(set)
+    for c in contacts:
+        by_joint[flexion_joint(c.part_a, c.part_b)].add(int(c.frame))
+    report.flexion_overlap_by_joint = {FLEXION_JOINTS[j]: sorted(by_joint[j])
+                                       for j in sorted(by_joint)}
     report.flexion_overlap_max_extent = max((c.extent for c in contacts), default=0.0)
     report.flexion_overlap_max_depth = max((c.depth for c in contacts), default=0.0)
     empty = (np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 3), np.float32))
@@ -127,11 +138,16 @@ def separate_flexion(vertices: np.ndarray, rest: RestBody, config: BodyConfig,
         report.flexion_residual_frames = list(report.flexion_overlap_frames)
         report.flexion_residual_pairs = sum(c.n_pairs for c in contacts)
         return empty
-    # The frames either side too: where the surfaces come within the gap but do not yet cross,
-    # so that the correction does not start at full size from one frame to the next.
+    # Each joint in its frames and the frames either side too: where the surfaces come within
+    # the gap but do not yet cross, so that the correction does not start at full size from one
+    # frame to the next.
     found = np.array(report.flexion_overlap_frames)
-    frames = np.unique(np.clip(np.concatenate([found - 1, found, found + 1]), 0,
-                               len(vertices) - 1))
+    joints_at: dict[int, set[int]] = defaultdict(set)
+    for joint, joint_frames in by_joint.items():
+        for f in joint_frames:
+            for g in range(max(f - 1, 0), min(f + 2, len(vertices))):
+                joints_at[g].add(joint)
+    frames = {f: frozenset(js) for f, js in joints_at.items()}
     rep_f, rep_v, rep_o = separate_flexed_parts(vertices, rest, frames, config.flexion_gap)
     residual = det.detect(vertices[found], frames=found)
     report.flexion_residual_frames = sorted({int(c.frame) for c in residual})

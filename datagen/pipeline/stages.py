@@ -294,7 +294,12 @@ def flexion_overlap_note(body: BodySequence | None, frames: list[int]) -> str:
         return ""
     where = f"frame {frames[0]}" if len(frames) == 1 else (
         "frames " + ", ".join(str(f) for f in frames[:-1]) + f" and {frames[-1]}")
-    return (f"; at {where} the body's parts still intersect across a flexed joint (hip or "
-            f"knee; skinning sank them up to {100 * report.flexion_overlap_max_depth:.1f} cm "
+    # The joints folding in those frames, where the report has them per joint.
+    by_joint = getattr(report, "flexion_overlap_by_joint", None) or {}
+    joints = [j for j, folds in by_joint.items()
+              if any(int(f) - lead_in in frames for f in folds)] or ["hip, knee or elbow"]
+    return (f"; at {where} the body's parts still intersect across a flexed joint "
+            f"({', '.join(joints)}; skinning sank them up to "
+            f"{100 * report.flexion_overlap_max_depth:.1f} cm "
             f"deep in this sequence, and separating them left "
             f"{report.flexion_residual_pairs} triangle pairs crossing)")

@@ -1,6 +1,6 @@
-"""Distance fields of the body parts that fold onto each other across a joint (the hip and the
-knee: datagen.body.parts.FLEXION_SIDES), in each part's own moving frame, for the frames in
-which the body stage found them folding.
+"""Distance fields of the body parts that fold onto each other across a joint (the hip, the
+knee and the elbow: datagen.body.parts.FLEXION_SIDES), in each part's own moving frame, for the
+frames in which the body stage found them folding at that joint.
 
 Why: a tracked cloth vertex follows its own triangle's surface, and the part guard
 (kernels.nearest_one) searches it again only when the last search saw another part's facing
@@ -13,6 +13,8 @@ question "how near is a folding part's surface" is one rigid transform and one t
 - each part's frame is the rigid fit (Kabsch) of its vertices to where they were in the track's
   first frame; within a frame the rotation is interpolated (normalised quaternion lerp) and the
   centre linearly;
+- a frame's fields are those of the joints folding in or just after it (FOLD_LEAD_FRAMES), so
+  a running arm's bent elbows cost its legs nothing;
 - in that frame, the part's own triangles are sampled once per body frame as a signed distance
   (pseudonormal sign; the patch is open at the joint) on a fixed grid per part (FIELD_CELL), and
   within a frame the two ends' values are interpolated linearly. Skinning's deviation from the
@@ -50,7 +52,7 @@ B_FIELDS = B_OWN + PART_SLOTS
 (H_PART, H_ORIGIN, H_INV_CELL, H_DIMS, H_Q0, H_C0, H_Q1, H_C1, H_SHIFT, H_TRAVEL, H_DATA) = (
     0, 1, 4, 5, 8, 12, 15, 19, 22, 25, 26)
 HEADER = 27
-MAX_FIELDS = 8
+MAX_FIELDS = 16  # partner bits are a float32's exact integer bits
 
 
 def _kabsch(ref: np.ndarray, cur: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -76,33 +78,27 @@ class FoldFields:
     """Per body frame, the folding parts' frames and distance fields, computed on demand."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, face_parts: np.ndarray,
-                 fold_frames: frozenset[int], sides: tuple, part_index: dict[str, int]) -> None:
+                 folds: list[tuple[tuple[str, ...], tuple[str, ...], frozenset[int]]],
+                 part_index: dict[str, int]) -> None:
+        """`folds`: per joint that folds, its two sides' part names and the body frames it
+        folds in (the body stage's flexion overlap frames at that joint)."""
         self.vertices = vertices
         self.faces = np.asarray(faces, dtype=np.int64)
         self.face_parts = np.asarray(face_parts)
-        self.fold_frames = frozenset(int(f) for f in fold_frames)
         n_frames = vertices.shape[0]
+        # Per joint: its two sides (part indices) and the frames it folds in.
+        self.joints = [([part_index[p] for p in side_a], [part_index[p] for p in side_b],
+                        frozenset(int(f) for f in frames))
+                       for side_a, side_b, frames in folds]
+        self.fold_frames = frozenset(f for _, _, frames in self.joints for f in frames)
         parts: list[int] = []
-        partners: dict[int, set[int]] = {}
-        for side_a, side_b in sides:
-            a = [part_index[p] for p in side_a]
-            b = [part_index[p] for p in side_b]
+        for a, b, _ in self.joints:
             for p in a + b:
                 if p not in parts:
                     parts.append(p)
-            for p in a:
-                partners.setdefault(p, set()).update(b)
-            for p in b:
-                partners.setdefault(p, set()).update(a)
         if len(parts) > MAX_FIELDS:
             raise ValueError(f"FoldFields: {len(parts)} folding parts, at most {MAX_FIELDS}")
         self.parts = parts
-        self.partner_bits = np.zeros(PART_SLOTS)
-        self.own_slot = np.zeros(PART_SLOTS)
-        for k, p in enumerate(parts):
-            self.own_slot[p % PART_SLOTS] = k + 1
-        for p, others in partners.items():
-            self.partner_bits[p % PART_SLOTS] = sum(1 << parts.index(o) for o in others)
         # Each part's triangles (re-indexed to its own vertices) and the frames it is sampled in.
         self.tris: list[np.ndarray] = []
         self.verts: list[np.ndarray] = []
@@ -111,15 +107,19 @@ class FoldFields:
             used, local = np.unique(tri, return_inverse=True)
             self.verts.append(used)
             self.tris.append(local.reshape(-1, 3))
-        self.frames = sorted({f for g in self.fold_frames
-                              for f in range(g - FOLD_LEAD_FRAMES - 1, g + 1)
-                              if 0 <= f < n_frames})
-        # A fixed grid per part over every sampled frame's surface in the part's own frame.
+        sampled: list[set[int]] = [set() for _ in parts]
+        for a, b, frames in self.joints:
+            for f in {f for g in frames for f in range(g - FOLD_LEAD_FRAMES - 1, g + 1)
+                      if 0 <= f < n_frames}:
+                for p in a + b:
+                    sampled[parts.index(p)].add(f)
+        self.frames = sorted(set().union(*sampled)) if sampled else []
+        # A fixed grid per part over every frame's surface it is sampled in, in its own frame.
         self.boxes = []
         for k in range(len(parts)):
             lo = np.full(3, np.inf)
             hi = np.full(3, -np.inf)
-            for f in self.frames:
+            for f in sorted(sampled[k]):
                 local = self._fit(k, f)[2]
                 lo = np.minimum(lo, local.min(axis=0))
                 hi = np.maximum(hi, local.max(axis=0))
@@ -127,7 +127,7 @@ class FoldFields:
             hi += FIELD_MARGIN
             dims = np.ceil((hi - lo) / FIELD_CELL).astype(np.int64) + 1
             self.boxes.append((lo, dims))
-        self._cache: OrderedDict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = (
+        self._cache: OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = (
             OrderedDict())
 
     def _fit(self, k: int, f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -138,65 +138,87 @@ class FoldFields:
         rot, _, c_cur = _kabsch(ref, cur)
         return rot, c_cur, (cur - c_cur) @ rot
 
-    def _sample(self, f: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """Per part: (quaternion, centre, field values) at body frame f."""
+    def _sample(self, k: int, f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Part k's (quaternion, centre, field values) at body frame f."""
         import igl
 
-        if f in self._cache:
-            self._cache.move_to_end(f)
-            return self._cache[f]
-        out = []
-        for k in range(len(self.parts)):
-            rot, c_cur, local = self._fit(k, f)
-            lo, dims = self.boxes[k]
-            axes = [lo[d] + FIELD_CELL * np.arange(dims[d]) for d in range(3)]
-            grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-            sd, *_ = igl.signed_distance(grid, np.ascontiguousarray(local),
-                                         np.ascontiguousarray(self.tris[k]),
-                                         sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
-            out.append((_quaternion(rot), c_cur, np.asarray(sd, dtype=np.float64)))
-        self._cache[f] = out
-        while len(self._cache) > 3:
+        key = (k, f)
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
+        rot, c_cur, local = self._fit(k, f)
+        lo, dims = self.boxes[k]
+        axes = [lo[d] + FIELD_CELL * np.arange(dims[d]) for d in range(3)]
+        grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        sd, *_ = igl.signed_distance(grid, np.ascontiguousarray(local),
+                                     np.ascontiguousarray(self.tris[k]),
+                                     sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
+        out = (_quaternion(rot), c_cur, np.asarray(sd, dtype=np.float64))
+        self._cache[key] = out
+        # Three body frames of every part: a frame's two ends and the next frame's end.
+        while len(self._cache) > 3 * len(self.parts):
             self._cache.popitem(last=False)
         return out
 
+    def folding(self, f0: int, f1: int) -> list[int]:
+        """The joints (indices into `folds`) folding in the frame f0 -> f1 or just after it."""
+        window = range(f0, f1 + FOLD_LEAD_FRAMES + 1)
+        return [j for j, (_, _, frames) in enumerate(self.joints)
+                if any(f in frames for f in window)]
+
     def active(self, f0: int, f1: int) -> bool:
         """Whether the frame f0 -> f1 is in or just before a fold."""
-        return any(f in self.fold_frames for f in range(f0, f1 + FOLD_LEAD_FRAMES + 1))
+        return bool(self.folding(f0, f1))
 
     def blob(self, f0: int, f1: int) -> np.ndarray | None:
-        """The kernels' array for the frame f0 -> f1, or None outside a fold."""
-        if not self.active(f0, f1):
+        """The kernels' array for the frame f0 -> f1, or None outside a fold: the fields of the
+        parts folding at the joints that fold in it or just after it."""
+        joints = self.folding(f0, f1)
+        if not joints:
             return None
-        a = self._sample(f0)
-        b = self._sample(f1)
-        head = np.zeros(B_FIELDS + HEADER * len(self.parts))
-        head[B_N] = len(self.parts)
-        head[B_PARTNERS:B_PARTNERS + PART_SLOTS] = self.partner_bits
-        head[B_OWN:B_OWN + PART_SLOTS] = self.own_slot
+        fields: list[int] = []  # indices into self.parts, in slot order
+        partners: dict[int, set[int]] = {}
+        for j in joints:
+            a, b, _ = self.joints[j]
+            for p in a + b:
+                if self.parts.index(p) not in fields:
+                    fields.append(self.parts.index(p))
+            for p in a:
+                partners.setdefault(p, set()).update(b)
+            for p in b:
+                partners.setdefault(p, set()).update(a)
+        head = np.zeros(B_FIELDS + HEADER * len(fields))
+        head[B_N] = len(fields)
+        for slot, k in enumerate(fields):
+            head[B_OWN + self.parts[k] % PART_SLOTS] = slot + 1
+        for p, others in partners.items():
+            head[B_PARTNERS + p % PART_SLOTS] = sum(
+                1 << fields.index(self.parts.index(o)) for o in others)
         chunks = [head]
         at = len(head)
-        for k, part in enumerate(self.parts):
+        for slot, k in enumerate(fields):
+            a = self._sample(k, f0)
+            b = self._sample(k, f1)
             lo, dims = self.boxes[k]
-            h = B_FIELDS + HEADER * k
-            head[h + H_PART] = part
+            h = B_FIELDS + HEADER * slot
+            head[h + H_PART] = self.parts[k]
             head[h + H_ORIGIN:h + H_ORIGIN + 3] = lo
             head[h + H_INV_CELL] = 1.0 / FIELD_CELL
             head[h + H_DIMS:h + H_DIMS + 3] = dims
-            head[h + H_Q0:h + H_Q0 + 4] = a[k][0]
-            head[h + H_C0:h + H_C0 + 3] = a[k][1]
-            q1 = b[k][0]
-            if np.dot(q1, a[k][0]) < 0.0:
+            head[h + H_Q0:h + H_Q0 + 4] = a[0]
+            head[h + H_C0:h + H_C0 + 3] = a[1]
+            q1 = b[0]
+            if np.dot(q1, a[0]) < 0.0:
                 q1 = -q1  # the short way round
             head[h + H_Q1:h + H_Q1 + 4] = q1
-            head[h + H_C1:h + H_C1 + 3] = b[k][1]
-            shift = b[k][1] - a[k][1]
+            head[h + H_C1:h + H_C1 + 3] = b[1]
+            shift = b[1] - a[1]
             head[h + H_SHIFT:h + H_SHIFT + 3] = shift
             moved = (np.asarray(self.vertices[f1][self.verts[k]], dtype=np.float64)
                      - np.asarray(self.vertices[f0][self.verts[k]], dtype=np.float64) - shift)
             head[h + H_TRAVEL] = float(np.sqrt(np.einsum("ij,ij->i", moved, moved).max()))
             head[h + H_DATA] = at
             # The two ends side by side: a lookup reads both from one cache line.
-            chunks.append(np.stack([a[k][2], b[k][2]], axis=1).ravel())
-            at += 2 * len(a[k][2])
+            chunks.append(np.stack([a[2], b[2]], axis=1).ravel())
+            at += 2 * len(a[2])
         return np.concatenate(chunks)

@@ -1504,7 +1504,7 @@ def nearest_one(
     (SimOptions.search_every), and a surface that comes from beyond the cell faster than that
     can still pass it (guarding those too, against the odometer or the local bound, searched a
     walking t-shirt's tracked vertices again several times a frame: 50 % more time). Where the
-    body folds across a joint (the body stage's flexion frames, the hip and knee: `fold`, the
+    body folds across a joint (the body stage's flexion frames, hip, knee, elbow: `fold`, the
     fold fields from fold[fold_at], none where fold_at < 0 or they are empty), such a vertex
     looks the parts folding onto its own up in their distance fields (fold_near) and is searched
     once one closing face to face is within the cell; between lookups it keeps, in its guard

@@ -332,7 +332,8 @@ class ColliderTrack:
     # (T,) each face's body part, or None for a collider that is one surface (BodyCollider)
     face_parts: np.ndarray | None = None
     # The distance fields of the parts folding across a joint in the body stage's flexion
-    # frames (the hip and knee), for the part guard (kernels.fold_near); None where none fold.
+    # frames (the hip, knee and elbow), for the part guard (kernels.fold_near); None where none
+    # fold.
     fold_fields: FoldFields | None = None
 
     @property
@@ -341,14 +342,16 @@ class ColliderTrack:
 
 
 def track_of(body: BodySequence) -> ColliderTrack:
-    from datagen.body.parts import FLEXION_SIDES, PART_INDEX
+    from datagen.body.parts import FLEXION_JOINTS, FLEXION_SIDES, PART_INDEX
 
     faces = body.rest.faces
     face_parts = body.rest.part_labels[faces[:, 0]]
     report = getattr(body, "self_collision", None)
-    folds = frozenset(getattr(report, "flexion_overlap_frames", None) or ())
-    fields = (FoldFields(body.vertices, faces, face_parts, folds, FLEXION_SIDES, PART_INDEX)
-              if folds else None)
+    by_joint = getattr(report, "flexion_overlap_by_joint", None) or {}
+    folds = [(side_a, side_b, frozenset(by_joint[name]))
+             for name, (side_a, side_b) in zip(FLEXION_JOINTS, FLEXION_SIDES, strict=True)
+             if by_joint.get(name)]
+    fields = FoldFields(body.vertices, faces, face_parts, folds, PART_INDEX) if folds else None
     return ColliderTrack(body.vertices, faces, body.collider_face_mask, body.fps,
                          body.lead_in_frames, face_parts, fields)
 
