@@ -90,7 +90,6 @@ class FoldFields:
         self.joints = [([part_index[p] for p in side_a], [part_index[p] for p in side_b],
                         frozenset(int(f) for f in frames))
                        for side_a, side_b, frames in folds]
-        self.fold_frames = frozenset(f for _, _, frames in self.joints for f in frames)
         parts: list[int] = []
         for a, b, _ in self.joints:
             for p in a + b:
@@ -165,10 +164,6 @@ class FoldFields:
         window = range(f0, f1 + FOLD_LEAD_FRAMES + 1)
         return [j for j, (_, _, frames) in enumerate(self.joints)
                 if any(f in frames for f in window)]
-
-    def active(self, f0: int, f1: int) -> bool:
-        """Whether the frame f0 -> f1 is in or just before a fold."""
-        return bool(self.folding(f0, f1))
 
     def blob(self, f0: int, f1: int) -> np.ndarray | None:
         """The kernels' array for the frame f0 -> f1, or None outside a fold: the fields of the
