@@ -40,9 +40,9 @@ def test_a_fields_values_are_the_distance_to_its_part_in_the_parts_own_frame():
     blob = fields.blob(3, 4)
     assert blob[FF.B_N] == 2
     # Each part's partners are the other side's fields, its own slot its own field.
-    assert blob[FF.B_PARTNERS + 0] == 2 and blob[FF.B_PARTNERS + 1] == 1
-    assert blob[FF.B_OWN + 0] == 1 and blob[FF.B_OWN + 1] == 2
-    h = FF.B_FIELDS  # the ball's header
+    assert FF.read_partners(blob, 0) == [1] and FF.read_partners(blob, 1) == [0]
+    assert FF.read_own(blob, 0) == 0 and FF.read_own(blob, 1) == 1
+    h = FF.header(blob, 0)  # the ball's
     assert blob[h + FF.H_PART] == 0
     # The frame's two ends: the ball's rotation since the first frame, its centre, its motion.
     for q_at, c_at, f in ((FF.H_Q0, FF.H_C0, 3), (FF.H_Q1, FF.H_C1, 4)):
@@ -88,17 +88,18 @@ def test_a_frame_carries_the_fields_of_the_joints_folding_in_it_only():
         if blob is None:
             return None
         n = int(blob[FF.B_N])
-        return [int(blob[FF.B_FIELDS + FF.HEADER * k + FF.H_PART]) for k in range(n)], blob
+        return [int(blob[FF.header(blob, k) + FF.H_PART]) for k in range(n)], blob
 
     # A frame f0 -> f0 + 1 carries a joint folding at f0 to f0 + 1 + FOLD_LEAD_FRAMES.
     assert slots(0)[0] == [0, 2] and slots(2)[0] == [0, 2]
     assert slots(3)[0] == [0, 1, 2]  # in the lid's fold and leading into the plate's
     assert slots(4)[0] == [0, 1] and slots(6)[0] == [0, 1]
     order, blob = slots(4)
-    # The ball's partner is the plate's slot (bit 1), the plate's the ball's (bit 0); the lid,
-    # not folding, has neither partners nor a slot.
-    assert blob[FF.B_PARTNERS + 0] == 2 and blob[FF.B_PARTNERS + 1] == 1
-    assert blob[FF.B_PARTNERS + 2] == 0 and blob[FF.B_OWN + 2] == 0
-    assert blob[FF.B_OWN + 0] == 1 and blob[FF.B_OWN + 1] == 2
+    # The ball's partner is the plate's slot (1), the plate's the ball's (0); the lid, not
+    # folding, has neither partners nor a slot, and no table entry at all.
+    assert FF.read_partners(blob, 0) == [1] and FF.read_partners(blob, 1) == [0]
+    assert FF.read_partners(blob, 2) == [] and FF.read_own(blob, 2) is None
+    assert blob[FF.B_SLOTS] == 2
+    assert FF.read_own(blob, 0) == 0 and FF.read_own(blob, 1) == 1
     # In frame 3 the ball folds onto both: its partners are the plate's and the lid's slots.
-    assert slots(3)[1][FF.B_PARTNERS + 0] == 2 + 4
+    assert FF.read_partners(slots(3)[1], 0) == [1, 2]

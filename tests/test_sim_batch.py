@@ -1,6 +1,8 @@
 """Batches: several scenes in one solver (datagen.sim.batch) give each scene what it gets alone."""
 
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,6 +11,8 @@ from datagen.errors import InputError, RejectedSequence
 from datagen.sim.batch import BatchScene, lay_out, simulate_batch
 from datagen.sim.simulate import SimOptions, simulate
 from datagen.study.scenes import mirrored_track, sheet_sphere, tube_cylinder
+
+sys.path.insert(0, str(Path(__file__).parent))  # fold_scenes
 
 FRAMES = 6
 OPTIONS = SimOptions(solver="xpbd", frames=FRAMES, profile_every=0, settle_seconds=0.0,
@@ -176,3 +180,23 @@ def test_a_hashed_body_grid_gives_the_batch_the_dense_grids_contacts(scenes, mon
         name = scene.garments[0].name
         gap = np.abs(a.vertices[name] - b.vertices[name]).max()
         assert gap == 0.0 if k < 2 else gap < 2e-5, (k, gap)
+
+
+def test_a_batch_looks_up_each_scenes_folding_parts_in_its_own_fields():
+    """A part folding onto cloth from beyond a grid cell is caught by its distance field
+    (datagen.sim.fold_fields; alone: tests/test_sim_physics.py). In a batch every scene's
+    fields ride in one table, each scene's parts numbered apart and its fields' frames moved
+    with it (where the batch puts it): two plates folding onto two trouser legs side by side
+    swallow none of either leg, as each does alone; joined without the fields, both legs are
+    swallowed."""
+    from fold_scenes import plate_folding_onto_trouser_leg
+
+    options = SimOptions(settle_seconds=0.0, strain_refinements=0)
+    pair = [plate_folding_onto_trouser_leg(fold=True) for _ in range(2)]
+    scenes = [BatchScene([p.leg], p.track) for p in pair]
+    for p, result in zip(pair, simulate_batch(scenes, options), strict=True):
+        assert not result.report["batch"]["alone"]
+        assert max(p.swallowed(result.vertices[p.leg.name])) == 0
+    blind = [BatchScene(s.garments, replace(s.track, fold_fields=None)) for s in scenes]
+    for p, result in zip(pair, simulate_batch(blind, options), strict=True):
+        assert max(p.swallowed(result.vertices[p.leg.name])) > 100

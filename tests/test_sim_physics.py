@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import sys
 from dataclasses import asdict, replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +17,9 @@ from datagen.sim.model import build_cloth_model, edges_of
 from datagen.sim.scenes import grid_sheet, icosphere
 from datagen.sim.simulate import ColliderTrack, SimOptions, simulate
 from datagen.sim.solvers import SolverSettings, make_solver
+
+sys.path.insert(0, str(Path(__file__).parent))
+from fold_scenes import plate_folding_onto_trouser_leg  # noqa: E402
 
 G = 9.81
 
@@ -243,53 +248,12 @@ def test_cloth_on_one_body_part_is_pushed_by_another_that_folds_onto_it():
 
 
 def _plate_folding_onto_trouser_leg(fold: bool) -> list[int]:
-    """A loose cotton tube (a trouser leg, radius 7 cm, its waist pinned) around a vertical
-    limb (part 0, radius 5 cm), and a plate (part 1, 45 x 30 x 4 cm) hinged 1 cm outside the
-    limb's top, as a thigh folds onto the calf with the body stage's 1 cm gap between them,
-    swinging from horizontal down onto the limb's side over 8 frames (its far end at 1.8 m/s,
-    6 cm a frame) and then holding. Per frame, how many of the tube's vertices are inside the
-    plate deeper than the thickness (the waist's pinned vertices, which follow the limb, left
-    out). `fold`: whether the two parts fold onto each other in every
-    frame (the body stage's flexion frames), so that the part guard looks the plate up in its
-    distance field (datagen.sim.fold_fields)."""
-    import trimesh
-
-    from datagen.sim.fold_fields import FoldFields
-    from datagen.sim.scenes import cylinder_mesh, tube
-
-    lv, lf = cylinder_mesh(0.05, 0.6, sections=32, rings=24)
-    length, width, thick = 0.45, 0.3, 0.04
-    plate = trimesh.creation.box(extents=(thick, width, length))
-    plate.apply_translation((thick / 2, 0.0, -length / 2))  # its face at x = 0, hinge at 0
-    pv, pf = trimesh.remesh.subdivide_to_size(plate.vertices, plate.faces, 0.02)
-    hinge = np.array([0.06, 0.0, 0.5])
-    angles = np.radians(np.r_[np.linspace(90.0, 0.0, 9), np.zeros(6)])
-
-    def rotation(a: float) -> np.ndarray:  # 90 degrees: horizontal, its face down
-        return np.array([[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0],
-                         [np.sin(a), 0.0, np.cos(a)]])
-
-    vertices = np.array([np.concatenate([lv, pv @ rotation(a).T + hinge]) for a in angles])
-    faces = np.concatenate([lf, pf + len(lv)]).astype(np.int32)
-    face_parts = np.r_[np.zeros(len(lf), int), np.ones(len(pf), int)]
-    fields = FoldFields(vertices, faces, face_parts,
-                        [(("limb",), ("plate",), frozenset(range(len(angles))))],
-                        {"limb": 0, "plate": 1}) if fold else None
-    track = ColliderTrack(vertices, faces, np.ones(len(faces), bool), face_parts=face_parts,
-                          fold_fields=fields)
-    leg = tube(0.07, 0.35, 48, 18, top=0.45)
-    leg.pinned = leg.loops["waist"]
-    result = simulate([leg], track, SimOptions(settle_seconds=0.0, strain_refinements=0))
-    depth = FABRICS["cotton"].thickness
-    free = np.setdiff1d(np.arange(len(leg.vertices)), leg.pinned)
-    swallowed = []
-    for a, x in zip(angles, result.vertices[leg.name][:, free].astype(np.float64), strict=True):
-        local = (x - hinge) @ rotation(a)
-        inside = ((local[:, 0] > depth) & (local[:, 0] < thick - depth)
-                  & (np.abs(local[:, 1]) < width / 2 - depth)
-                  & (local[:, 2] > -length + depth) & (local[:, 2] < -depth))
-        swallowed.append(int(inside.sum()))
-    return swallowed
+    """Per frame, how many of the trouser leg's free vertices end inside the plate folding onto
+    it (tests/fold_scenes.py)."""
+    scene = plate_folding_onto_trouser_leg(fold)
+    result = simulate([scene.leg], scene.track,
+                      SimOptions(settle_seconds=0.0, strain_refinements=0))
+    return scene.swallowed(result.vertices[scene.leg.name])
 
 
 def test_a_part_folding_onto_cloth_from_beyond_a_cell_pushes_it_in_fold_frames():

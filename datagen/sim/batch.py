@@ -25,6 +25,7 @@ import numpy as np
 from datagen.errors import InputError, RejectedSequence
 from datagen.sim.effects import resolve_effects
 from datagen.sim.fabrics import get_fabric
+from datagen.sim.fold_fields import JoinedFoldFields
 from datagen.sim.simulate import (
     ColliderTrack,
     SimOptions,
@@ -173,10 +174,21 @@ def _joined(scenes: list[BatchScene], layout: BatchLayout):
         n_body += track.vertices.shape[1]
     first = scenes[0].track
     # Parts are kept where every scene has them: each scene's body is guarded as it is alone.
+    # Each scene's parts are numbered after the last scene's, so that the fold fields' tables
+    # (indexed by part) tell one scene's thigh from another's.
     face_parts = [s.track.face_parts for s in scenes]
-    joined_parts = None if any(p is None for p in face_parts) else np.concatenate(face_parts)
+    joined_parts = fields = None
+    if not any(p is None for p in face_parts):
+        stride = 1 + max(int(np.max(p, initial=0)) for p in face_parts)
+        joined_parts = np.concatenate([np.asarray(p) + k * stride
+                                       for k, p in enumerate(face_parts)])
+        folding = [(s.track.fold_fields, k * stride, shift)
+                   for k, (s, shift) in enumerate(zip(scenes, layout.offsets, strict=True))
+                   if s.track.fold_fields is not None]
+        fields = JoinedFoldFields(folding) if folding else None
     track = ColliderTrack(np.concatenate(verts, axis=1), np.concatenate(faces),
-                          np.concatenate(masks), first.fps, first.lead_in_frames, joined_parts)
+                          np.concatenate(masks), first.fps, first.lead_in_frames, joined_parts,
+                          fields)
     return garments, track, parts
 
 

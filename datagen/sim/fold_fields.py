@@ -27,6 +27,7 @@ to the fused frame kernel's scalar array, which has no argument left.
 from __future__ import annotations
 
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -37,15 +38,24 @@ FIELD_MARGIN = 0.035
 # The field runs this many frames before a fold: the parts close in before skinning sinks them
 # into each other.
 FOLD_LEAD_FRAMES = 2
-# Blob layout (offsets from the blob's start): the number of fields, then per body part the
-# bits of the field slots that fold onto it (PART_SLOTS entries), then per field HEADER values
-# and the data, each grid point's values at the frame's two ends side by side.
-# Then per body part its own field's slot plus one (0: none), whose motion the vertices
-# tracking it move with (kernels.fold_guard).
-PART_SLOTS = 32
-B_N, B_PARTNERS = 0, 1
-B_OWN = B_PARTNERS + PART_SLOTS
-B_FIELDS = B_OWN + PART_SLOTS
+# Blob layout (offsets from the blob's start): the number of fields, the number S of body-part
+# slots, then three tables of S entries indexed by body part: the bits of the field slots that
+# fold onto the part, counted from the part's base slot (T_PARTNERS); that base slot
+# (T_BASE); and the part's own field's slot plus one (T_OWN, 0: none), whose motion the
+# vertices tracking it move with (kernels.nearest_one). Then per field HEADER values and the
+# data, each grid point's values at the frame's two ends side by side. A batch of scenes
+# (JoinedFoldFields) numbers each scene's parts apart and puts its fields in consecutive slots
+# from its base, so a part's partners, always of its own scene, fit in MAX_FIELDS bits however
+# many scenes fold at once.
+B_N, B_SLOTS, B_TABLES = 0, 1, 2
+T_PARTNERS, T_BASE, T_OWN = 0, 1, 2  # the tables, each S long, in this order from B_TABLES
+
+
+def fields_at(n_slots: int) -> int:
+    """Where the first field's header starts in a blob with `n_slots` part slots."""
+    return B_TABLES + 3 * n_slots
+
+
 # Per field: its part, the grid (origin, 1 / cell, dimensions), the frame's two ends (rotation
 # as a quaternion, centre), the centre's motion over the frame, the most any of the part's
 # vertices moves relative to it, and where its data starts.
@@ -165,9 +175,9 @@ class FoldFields:
         return [j for j, (_, _, frames) in enumerate(self.joints)
                 if any(f in frames for f in window)]
 
-    def blob(self, f0: int, f1: int) -> np.ndarray | None:
-        """The kernels' array for the frame f0 -> f1, or None outside a fold: the fields of the
-        parts folding at the joints that fold in it or just after it."""
+    def frame(self, f0: int, f1: int) -> FrameFields | None:
+        """The fields of the frame f0 -> f1, or None outside a fold: those of the parts folding
+        at the joints that fold in it or just after it, ready to pack."""
         joints = self.folding(f0, f1)
         if not joints:
             return None
@@ -182,38 +192,115 @@ class FoldFields:
                 partners.setdefault(p, set()).update(b)
             for p in b:
                 partners.setdefault(p, set()).update(a)
-        head = np.zeros(B_FIELDS + HEADER * len(fields))
-        head[B_N] = len(fields)
-        for slot, k in enumerate(fields):
-            head[B_OWN + self.parts[k] % PART_SLOTS] = slot + 1
-        for p, others in partners.items():
-            head[B_PARTNERS + p % PART_SLOTS] = sum(
-                1 << fields.index(self.parts.index(o)) for o in others)
-        chunks = [head]
-        at = len(head)
-        for slot, k in enumerate(fields):
+        headers, data = [], []
+        for k in fields:
             a = self._sample(k, f0)
             b = self._sample(k, f1)
             lo, dims = self.boxes[k]
-            h = B_FIELDS + HEADER * slot
-            head[h + H_PART] = self.parts[k]
-            head[h + H_ORIGIN:h + H_ORIGIN + 3] = lo
-            head[h + H_INV_CELL] = 1.0 / FIELD_CELL
-            head[h + H_DIMS:h + H_DIMS + 3] = dims
-            head[h + H_Q0:h + H_Q0 + 4] = a[0]
-            head[h + H_C0:h + H_C0 + 3] = a[1]
+            h = np.zeros(HEADER)
+            h[H_PART] = self.parts[k]
+            h[H_ORIGIN:H_ORIGIN + 3] = lo
+            h[H_INV_CELL] = 1.0 / FIELD_CELL
+            h[H_DIMS:H_DIMS + 3] = dims
+            h[H_Q0:H_Q0 + 4] = a[0]
+            h[H_C0:H_C0 + 3] = a[1]
             q1 = b[0]
             if np.dot(q1, a[0]) < 0.0:
                 q1 = -q1  # the short way round
-            head[h + H_Q1:h + H_Q1 + 4] = q1
-            head[h + H_C1:h + H_C1 + 3] = b[1]
+            h[H_Q1:H_Q1 + 4] = q1
+            h[H_C1:H_C1 + 3] = b[1]
             shift = b[1] - a[1]
-            head[h + H_SHIFT:h + H_SHIFT + 3] = shift
+            h[H_SHIFT:H_SHIFT + 3] = shift
             moved = (np.asarray(self.vertices[f1][self.verts[k]], dtype=np.float64)
                      - np.asarray(self.vertices[f0][self.verts[k]], dtype=np.float64) - shift)
-            head[h + H_TRAVEL] = float(np.sqrt(np.einsum("ij,ij->i", moved, moved).max()))
-            head[h + H_DATA] = at
+            h[H_TRAVEL] = float(np.sqrt(np.einsum("ij,ij->i", moved, moved).max()))
+            headers.append(h)
             # The two ends side by side: a lookup reads both from one cache line.
-            chunks.append(np.stack([a[2], b[2]], axis=1).ravel())
-            at += 2 * len(a[2])
-        return np.concatenate(chunks)
+            data.append(np.stack([a[2], b[2]], axis=1).ravel())
+        return FrameFields([self.parts[k] for k in fields], headers, data, partners)
+
+    def blob(self, f0: int, f1: int) -> np.ndarray | None:
+        """The kernels' array for the frame f0 -> f1 (`frame`, packed), or None outside a fold."""
+        fields = self.frame(f0, f1)
+        return None if fields is None else pack([(fields, 0, np.zeros(3))])
+
+
+@dataclass
+class FrameFields:
+    """One scene's fold fields for one frame: per field (slot order) its part, header (as in
+    the blob, but H_DATA) and data; and per folding part the parts folding onto it."""
+
+    parts: list[int]
+    headers: list[np.ndarray]
+    data: list[np.ndarray]
+    partners: dict[int, set[int]]
+
+
+def pack(scenes: list[tuple[FrameFields, int, np.ndarray]]) -> np.ndarray:
+    """The kernels' array (layout above) for the frame fields of one scene or of several
+    side by side: per scene its fields, the number added to its part numbers and the shift
+    added to its positions."""
+    n_slots = 1 + max(max([*f.parts, *f.partners], default=0) + offset for f, offset, _ in scenes)
+    n_fields = sum(len(f.parts) for f, _, _ in scenes)
+    start = fields_at(n_slots)
+    head = np.zeros(start + HEADER * n_fields)
+    head[B_N] = n_fields
+    head[B_SLOTS] = n_slots
+    table = {t: B_TABLES + t * n_slots for t in (T_PARTNERS, T_BASE, T_OWN)}
+    chunks = [head]
+    at = len(head)
+    base = 0
+    for fields, offset, shift in scenes:
+        for p, others in fields.partners.items():
+            head[table[T_PARTNERS] + offset + p] = sum(1 << fields.parts.index(o) for o in others)
+            head[table[T_BASE] + offset + p] = base
+        for slot, (p, h, data) in enumerate(zip(fields.parts, fields.headers, fields.data,
+                                                strict=True)):
+            head[table[T_OWN] + offset + p] = base + slot + 1
+            out = start + HEADER * (base + slot)
+            head[out:out + HEADER] = h
+            head[out + H_PART] = offset + p
+            for centre in (H_C0, H_C1):  # the shift moves the part's frame, not its field
+                head[out + centre:out + centre + 3] += shift
+            head[out + H_DATA] = at
+            chunks.append(data)
+            at += len(data)
+        base += len(fields.parts)
+    return np.concatenate(chunks)
+
+
+def read_partners(blob: np.ndarray, part: int) -> list[int]:
+    """The field slots folding onto `part` in a packed blob (what kernels.fold_near reads)."""
+    n_slots = int(blob[B_SLOTS])
+    if part >= n_slots:
+        return []
+    bits = int(blob[B_TABLES + T_PARTNERS * n_slots + part])
+    base = int(blob[B_TABLES + T_BASE * n_slots + part])
+    return [base + k for k in range(MAX_FIELDS) if (bits >> k) & 1]
+
+
+def read_own(blob: np.ndarray, part: int) -> int | None:
+    """`part`'s own field slot in a packed blob, None where it has none."""
+    n_slots = int(blob[B_SLOTS])
+    own = int(blob[B_TABLES + T_OWN * n_slots + part]) - 1 if part < n_slots else -1
+    return None if own < 0 else own
+
+
+def header(blob: np.ndarray, slot: int) -> int:
+    """Where field `slot`'s header starts in a packed blob."""
+    return fields_at(int(blob[B_SLOTS])) + HEADER * slot
+
+
+class JoinedFoldFields:
+    """The fold fields of a batch's scenes (datagen.sim.batch), each scene's parts numbered
+    from its own offset and its positions shifted as the batch shifts them."""
+
+    def __init__(self, scenes: list[tuple[FoldFields, int, np.ndarray]]) -> None:
+        self.scenes = scenes
+
+    def blob(self, f0: int, f1: int) -> np.ndarray | None:
+        """The kernels' array for the frame f0 -> f1, or None where no scene folds in it."""
+        frames = [(fields.frame(f0, f1), offset, np.asarray(shift, dtype=np.float64))
+                  for fields, offset, shift in self.scenes]
+        folding = [(f, offset, shift) for f, offset, shift in frames if f is not None]
+        return pack(folding) if folding else None

@@ -1534,10 +1534,14 @@ def nearest_one(
                 # Nothing faced it within a cell when searched, but a part folding onto its
                 # own may have come from farther since (fold_near), unless its last lookup
                 # still shows it farther than a cell.
-                own = ti.cast(fold[fold_at + FF.B_OWN + ti.cast(part - 1.0, ti.i32)
-                                   % FF.PART_SLOTS], ti.i32) - 1
+                n_slots = ti.cast(fold[fold_at + FF.B_SLOTS], ti.i32)
+                p_own = ti.cast(part - 1.0, ti.i32)
+                own = -1
+                if p_own < n_slots:
+                    own = ti.cast(fold[fold_at + FF.B_TABLES + FF.T_OWN * n_slots + p_own],
+                                  ti.i32) - 1
                 if own >= 0:
-                    oh = fold_at + FF.B_FIELDS + FF.HEADER * own
+                    oh = fold_at + FF.B_TABLES + 3 * n_slots + FF.HEADER * own
                     own_shift = vec3(fold[oh + FF.H_SHIFT], fold[oh + FF.H_SHIFT + 1],
                                      fold[oh + FF.H_SHIFT + 2])
                     held = False
@@ -1645,11 +1649,18 @@ def fold_near(p: vec3, part: REAL, nb: vec3, s_frame: REAL, fold: F1, at: ti.i32
     found = 0
     budget = ti.cast(1.0, REAL)
     speed = ti.cast(0.0, REAL)
-    n_fields = ti.cast(fold[at + FF.B_N], ti.i32)
-    bits = ti.cast(fold[at + FF.B_PARTNERS + ti.cast(part, ti.i32) % FF.PART_SLOTS], ti.i32)
-    for k in range(n_fields):
-        if found == 0 and (bits >> k) & 1 != 0:
-            h = at + FF.B_FIELDS + FF.HEADER * k
+    n_slots = ti.cast(fold[at + FF.B_SLOTS], ti.i32)
+    index = ti.cast(part, ti.i32)
+    bits = 0  # the slots folding onto the part, from its scene's first (`base`)
+    base = 0
+    if index < n_slots:
+        bits = ti.cast(fold[at + FF.B_TABLES + FF.T_PARTNERS * n_slots + index], ti.i32)
+        base = ti.cast(fold[at + FF.B_TABLES + FF.T_BASE * n_slots + index], ti.i32)
+    for k in range(FF.MAX_FIELDS):
+        if found != 0 or bits >> k == 0:
+            break
+        if (bits >> k) & 1 != 0:
+            h = at + FF.B_TABLES + 3 * n_slots + FF.HEADER * (base + k)  # FF.fields_at
             shift = vec3(fold[h + FF.H_SHIFT], fold[h + FF.H_SHIFT + 1],
                          fold[h + FF.H_SHIFT + 2])
             speed = ti.max(speed, (shift - own_shift).norm() + fold[h + FF.H_TRAVEL])

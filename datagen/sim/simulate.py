@@ -20,7 +20,7 @@ from datagen.sim import backend
 from datagen.sim.collider import BodyCollider
 from datagen.sim.effects import Effects, SceneContent, resolve_effects
 from datagen.sim.fabrics import Fabric, get_fabric
-from datagen.sim.fold_fields import FoldFields
+from datagen.sim.fold_fields import FoldFields, JoinedFoldFields
 from datagen.sim.model import ClothModel, build_cloth_model
 from datagen.sim.progress import report_frame
 from datagen.sim.solvers import SolverSettings, make_solver
@@ -332,9 +332,9 @@ class ColliderTrack:
     # (T,) each face's body part, or None for a collider that is one surface (BodyCollider)
     face_parts: np.ndarray | None = None
     # The distance fields of the parts folding across a joint in the body stage's flexion
-    # frames (the hip, knee and elbow), for the part guard (kernels.fold_near); None where none
-    # fold.
-    fold_fields: FoldFields | None = None
+    # frames (the hip, knee and elbow), for the part guard (kernels.fold_near); a batch's
+    # scenes' joined (datagen.sim.batch); None where none fold.
+    fold_fields: FoldFields | JoinedFoldFields | None = None
 
     @property
     def n_frames(self) -> int:
