@@ -82,7 +82,7 @@ class SelfCollisionReport:
     intersecting_pairs: int = 0  # triangle pairs over all frames, before repair
     repaired_vertices: int = 0  # distinct (frame, vertex) moved by the repair
     max_repair_offset: float = 0.0  # metres
-    residual_pairs: int = 0  # after repair
+    residual_pairs: int = 0  # after repair and the flexion separation, in the frames they moved
     by_part_pair: dict[str, int] = field(default_factory=dict)
     dropped_parts: tuple[str, ...] = ()
     arm_clearance_max_deg: float = 0.0  # largest abduction added to fit the arms to the torso
