@@ -506,3 +506,32 @@ def test_procedural_actions_are_mostly_intersection_free(body_model):
         f"{raw_clean}/{n} without any adjustment"
     )
     assert clean >= 95
+
+
+def test_anny_cache_folders_the_process_cannot_write_or_create(tmp_path, monkeypatch):
+    """Processes take turns building Anny's cache under a file lock in its folder. A cache
+    built beforehand and shared read-only (a cluster's) cannot hold the lock's file, and
+    nothing can be built there: it is read without the lock, where the lock's file failed to be
+    created before. A folder that cannot be created is an error naming ANNY_CACHE_DIR."""
+    import os
+
+    from filelock import FileLock
+
+    from datagen.body import anny_model
+    from datagen.errors import InputError
+
+    writable = tmp_path / "cache"
+    assert isinstance(anny_model._build_lock(writable), FileLock) and writable.is_dir()
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o555)
+    if os.geteuid() == 0:  # root writes anywhere: ask as anyone else would be answered
+        monkeypatch.setattr(anny_model.os, "access",
+                            lambda p, mode: not (mode & os.W_OK and not os.stat(p).st_mode
+                                                 & 0o200))
+    with anny_model._build_lock(shared):
+        pass
+    assert list(shared.iterdir()) == []  # no lock file written
+    (tmp_path / "a_file").write_text("")
+    with pytest.raises(InputError, match="ANNY_CACHE_DIR.*a folder this process can create"):
+        anny_model._build_lock(tmp_path / "a_file" / "anny")

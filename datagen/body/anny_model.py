@@ -15,13 +15,17 @@ map (docs/architecture.md, "Retargeting"):
 
 Anny's first instantiation builds a cache (~1 minute, in ANNY_CACHE_DIR or ~/.cache/anny); one
 model is built per process and reused. Processes that start at once on a fresh machine (a dataset
-run's workers, the test suite's) take turns at it under a file lock in that folder.
+run's workers, the test suite's) take turns at it under a file lock in that folder; a folder
+the process cannot write to (a cache built beforehand and shared read-only) is read as it is.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import os
 import threading
+from pathlib import Path
 
 import numpy as np
 from filelock import FileLock
@@ -138,10 +142,25 @@ def _anny_model():
 
     # Anny checks for its cache file and then writes it in place, without a lock: a second
     # process starting meanwhile would build it again over the first's or read it half-written.
-    cache = get_anny_cache_path()
-    cache.mkdir(parents=True, exist_ok=True)
-    with _MODEL_LOCK, FileLock(cache / "datagen-build.lock"):
+    with _MODEL_LOCK, _build_lock(get_anny_cache_path()):
         return anny.Anny(topology=ANNY_TOPOLOGY, skinning_method="lbs")
+
+
+def _build_lock(cache: Path) -> contextlib.AbstractContextManager:
+    """The file lock under which processes take turns building Anny's cache in `cache`; none
+    where this process cannot write there (a cache built beforehand and shared read-only, as on
+    a cluster): nothing can be built there, so there is nothing to take turns at, and Anny reads
+    what is there."""
+    if not cache.is_dir():
+        try:
+            cache.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(None, "ANNY_CACHE_DIR",
+                             f"a folder this process can create for Anny's cache ({exc})",
+                             str(cache)) from exc
+    if not os.access(cache, os.W_OK):
+        return contextlib.nullcontext()
+    return FileLock(cache / "datagen-build.lock")
 
 
 class _Subject:
