@@ -103,3 +103,33 @@ def test_a_frame_carries_the_fields_of_the_joints_folding_in_it_only():
     assert FF.read_own(blob, 0) == 0 and FF.read_own(blob, 1) == 1
     # In frame 3 the ball folds onto both: its partners are the plate's and the lid's slots.
     assert FF.read_partners(slots(3)[1], 0) == [1, 2]
+
+
+def test_a_fields_grid_holds_its_part_with_the_margin_in_every_frame_a_blob_samples():
+    """A lookup outside a field's grid reads the part as at least FIELD_MARGIN away, which
+    holds only where the part lies that far inside the grid in every frame a blob samples,
+    the frame's end included: the last frame f0 -> f0 + 1 that carries a fold at frame g ends
+    at g + 1. A ball that grows by a fifth of its radius a frame (as skinning swells a part
+    about the joint) folding at frame 4: its grid once left out frame 5's ball, which then lay
+    1.5 cm inside the grid's edge instead of 3.5."""
+    frames, faces, parts, centres, rots = _ball_and_plate()
+    n_ball = len(frames[0]) - 4
+    for f in range(len(frames)):
+        local = frames[f, :n_ball] - centres[f]
+        frames[f, :n_ball] = local * (1.0 + 0.2 * f) + centres[f]
+    fields = FF.FoldFields(frames, faces, parts, [(("ball",), ("plate",), frozenset({4}))],
+                           {"ball": 0, "plate": 1})
+    sampled = 0
+    for f0 in range(len(frames) - 1):
+        blob = fields.blob(f0, f0 + 1)
+        if blob is None:
+            continue
+        h = FF.header(blob, 0)  # the ball's
+        origin = blob[h + FF.H_ORIGIN:h + FF.H_ORIGIN + 3]
+        top = origin + (blob[h + FF.H_DIMS:h + FF.H_DIMS + 3] - 1) * FF.FIELD_CELL
+        for f in (f0, f0 + 1):
+            local = fields._fit(0, f)[2]
+            assert np.all(local.min(axis=0) >= origin + FF.FIELD_MARGIN - 1e-9), (f0, f)
+            assert np.all(local.max(axis=0) <= top - FF.FIELD_MARGIN + 1e-9), (f0, f)
+            sampled += 1
+    assert sampled == 8  # f0 = 1 .. 4, both ends

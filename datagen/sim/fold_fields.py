@@ -117,12 +117,13 @@ class FoldFields:
             self.verts.append(used)
             self.tris.append(local.reshape(-1, 3))
         sampled: list[set[int]] = [set() for _ in parts]
+        # A joint folding at frame g is in the blobs of the frames f0 -> f0 + 1 from
+        # f0 = g - FOLD_LEAD_FRAMES - 1 to g (`folding`), each sampled at both ends.
         for a, b, frames in self.joints:
-            for f in {f for g in frames for f in range(g - FOLD_LEAD_FRAMES - 1, g + 1)
+            for f in {f for g in frames for f in range(g - FOLD_LEAD_FRAMES - 1, g + 2)
                       if 0 <= f < n_frames}:
                 for p in a + b:
                     sampled[parts.index(p)].add(f)
-        self.frames = sorted(set().union(*sampled)) if sampled else []
         # A fixed grid per part over every frame's surface it is sampled in, in its own frame.
         self.boxes = []
         for k in range(len(parts)):
