@@ -247,13 +247,13 @@ def test_cloth_on_one_body_part_is_pushed_by_another_that_folds_onto_it():
     assert run.qa["deep_share"].max() == 0.0  # ...where the QA sees none of it
 
 
-def _plate_folding_onto_trouser_leg(fold: bool) -> list[int]:
+def _plate_folding_onto_trouser_leg(fold: bool) -> tuple[list[int], object]:
     """Per frame, how many of the trouser leg's free vertices end inside the plate folding onto
-    it (tests/fold_scenes.py)."""
+    it (tests/fold_scenes.py); and the run."""
     scene = plate_folding_onto_trouser_leg(fold)
     result = simulate([scene.leg], scene.track,
                       SimOptions(settle_seconds=0.0, strain_refinements=0))
-    return scene.swallowed(result.vertices[scene.leg.name])
+    return scene.swallowed(result.vertices[scene.leg.name]), result
 
 
 def test_a_part_folding_onto_cloth_from_beyond_a_cell_pushes_it_in_fold_frames():
@@ -264,9 +264,14 @@ def test_a_part_folding_onto_cloth_from_beyond_a_cell_pushes_it_in_fold_frames()
     other, each tracked vertex looks the folding part up in its distance field (one transform,
     one trilinear lookup: kernels.fold_near) and is searched again once that part's surface,
     closing face to face, is within a cell: none of the sheet ends up inside the flap."""
-    blind = _plate_folding_onto_trouser_leg(fold=False)
+    blind, run = _plate_folding_onto_trouser_leg(fold=False)
     assert max(blind) > 100  # without the fields the part guard's gap swallows it (126)
-    assert max(_plate_folding_onto_trouser_leg(fold=True)) == 0
+    # The QA measures each vertex against its closest triangle, found anew each frame: the
+    # swallowed vertices track the limb, outside it, and are inside the plate. Measured against
+    # the triangles they tracked, the QA read none of them too deep (133 now).
+    too_deep = np.round(run.qa["deep_share"] * len(run.vertices["tube"][0])).astype(int)
+    assert np.all(too_deep >= np.array(blind))
+    assert max(_plate_folding_onto_trouser_leg(fold=True)[0]) == 0
 
 
 def _trampoline_centre_z(outer: bool, inner_fabric: str = "cotton",

@@ -258,17 +258,6 @@ class BodyCollider:
             self.items = ti.ndarray(ti.i32, self._items_alloc)
             K.grid_build_serial(*args, self.items)
 
-    def signed_distance_tracked(self, x, tri) -> np.ndarray:
-        """Signed distance of the cloth vertices (device arrays) to the triangles they track, at
-        the end of the current frame; `cell` where a vertex tracks none (it is far away)."""
-        n = x.shape[0]
-        if getattr(self, "_sdt_n", None) != n:
-            self._sdt_n = n
-            self._sdt_out = np.zeros(n, NP_REAL)
-        K.signed_distance_to_tracked(x, tri, self.faces, self.b1, self.n1, float(self.cell),
-                                     self._sdt_out, backend.serial())
-        return self._sdt_out.astype(np.float64)
-
     def signed_distance(self, x: np.ndarray) -> np.ndarray:
         """Signed distance of points (N, 3) to the collider surface at the end of the current
         frame (positive outside; `cell` or more where no triangle is within a grid cell)."""

@@ -672,9 +672,15 @@ class _Simulation:
             outputs[g.name].append(x[lo:hi].astype(np.float32))
         sd = None
         if self.collider is not None and self.effects.body_collision:
-            # The collider holds this frame's body as its end position; the solver's vertices
-            # track their closest triangles, so no new search is needed.
-            sd = self.collider.signed_distance_tracked(self.solver.x, self.solver.tri)
+            # The collider holds this frame's body as its end position. Each vertex measured
+            # against its closest triangle, found anew: the triangle a vertex tracks can be
+            # another part's than the one it is inside (a top caught between the swinging arm
+            # and the torso tracked the arm 12-24 mm inside the torso), and the QA read 5-30x
+            # too few vertices too deep on make dataset's sequences (docs/simulator.md).
+            if self.collider.grid_tag == 0:  # the first frame, before any step: no grid yet
+                b = self.body.vertices[body_frame]
+                self.collider.set_frames(b, b)
+            sd = self.collider.signed_distance(x)
         strain = self._strain(x)
         qa_rows.append([_qa(self.model, p, v, sd, strain) for p in self.parts])
 
