@@ -695,7 +695,12 @@ def test_a_tight_sleeve_slides_on_a_lengthening_limb_instead_of_stretching_past_
     assert strain.max() < limit + 3e-3, strain.max()
     assert strain.max() > 0.99 * limit  # it is tight: the limit holds it
     assert x[-1, :, 2].mean() - x[0, :, 2].mean() > 0.05  # the skin carried it up
-    assert result.qa["deep_share"].max() == 0.0
+    # Frame 0 is the sleeve as given, before any step: 8 % narrower than the limb, all of it
+    # 4.4 mm inside, deeper than cotton's thickness (the QA searches each frame's nearest
+    # triangles; measured against tracked triangles, none yet at frame 0, it read 0). The first
+    # step pushes it out and it stays out.
+    assert result.qa["deep_share"][0] == 1.0
+    assert result.qa["deep_share"][1:].max() == 0.0
 
 
 def test_tethers_are_the_strain_limits_shortest_path_to_a_pin():
