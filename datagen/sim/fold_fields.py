@@ -241,7 +241,8 @@ def pack(scenes: list[tuple[FrameFields, int, np.ndarray]]) -> np.ndarray:
     """The kernels' array (layout above) for the frame fields of one scene or of several
     side by side: per scene its fields, the number added to its part numbers and the shift
     added to its positions."""
-    n_slots = 1 + max(max([*f.parts, *f.partners], default=0) + offset for f, offset, _ in scenes)
+    # Every part with partners has a field of its own: the fields' parts bound the tables.
+    n_slots = 1 + max(max(f.parts) + offset for f, offset, _ in scenes)
     n_fields = sum(len(f.parts) for f, _, _ in scenes)
     start = fields_at(n_slots)
     head = np.zeros(start + HEADER * n_fields)
@@ -297,11 +298,11 @@ class JoinedFoldFields:
     from its own offset and its positions shifted as the batch shifts them."""
 
     def __init__(self, scenes: list[tuple[FoldFields, int, np.ndarray]]) -> None:
-        self.scenes = scenes
+        self.scenes = [(fields, offset, np.asarray(shift, dtype=np.float64))
+                       for fields, offset, shift in scenes]
 
     def blob(self, f0: int, f1: int) -> np.ndarray | None:
         """The kernels' array for the frame f0 -> f1, or None where no scene folds in it."""
-        frames = [(fields.frame(f0, f1), offset, np.asarray(shift, dtype=np.float64))
-                  for fields, offset, shift in self.scenes]
+        frames = [(fields.frame(f0, f1), offset, shift) for fields, offset, shift in self.scenes]
         folding = [(f, offset, shift) for f, offset, shift in frames if f is not None]
         return pack(folding) if folding else None
