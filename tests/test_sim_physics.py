@@ -914,6 +914,77 @@ def test_the_one_launch_serial_grid_is_the_three_kernel_grid(hashed, monkeypatch
         assert len(serial_items) > mask.sum()  # buckets shared, triangles in several cells
 
 
+@pytest.mark.parametrize("hashed", [False, True])
+def test_the_depth_search_finds_the_nearest_triangle_whatever_its_hint(hashed, monkeypatch):
+    """The depth QA's signed distance is each point's distance to the nearest filed triangle
+    of the body at the frame's end, signed by the surface normal, or one cell where none is
+    within it. The solver's tracked triangle and the last call's closest one only start the
+    search and narrow the cells it scans: a neighbour of the nearest, any other, an unfiled one
+    or one out of range must give the same distances as none."""
+    import taichi as ti
+    import trimesh
+
+    from datagen.sim import collider as collider_module
+
+    if hashed:
+        monkeypatch.setattr(collider_module, "DENSE_GRID_CELLS", 0)
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.25)
+    v0 = np.asarray(sphere.vertices, np.float64)
+    v1 = v0 + [0.03, 0.0, -0.02]  # moved over the frame: the grid holds swept boxes
+    faces = np.asarray(sphere.faces)
+    mask = np.ones(len(faces), bool)
+    mask[faces[:, 0] % 5 == 0] = False  # triangles the garment cannot reach: not searched
+    collider = BodyCollider(faces, mask, len(v0))
+    collider.set_frames(v0, v1)
+    assert collider.hashed == hashed
+    rng = np.random.default_rng(5)
+    direction = rng.normal(size=(4000, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    radius = rng.uniform(0.19, 0.31, size=(4000, 1))  # within and beyond a cell of the surface
+    points = v1.mean(axis=0) + radius * direction
+    plain = collider.signed_distance(points)
+
+    # The truth: trimesh's closest point on the filed triangles, signed along the body's
+    # vertex normals interpolated there (the collider's own, n1).
+    filed_faces = faces[mask]
+    filed = trimesh.Trimesh(v1, filed_faces, process=False)
+    closest, distance, which = trimesh.proximity.closest_point(filed, points)
+    corners = filed_faces[which]
+    bary = trimesh.triangles.points_to_barycentric(v1[corners], closest)
+    normal = np.einsum("nk,nkj->nj", bary, collider.n1.to_numpy()[corners])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    truth = np.einsum("nj,nj->n", points - closest, normal)
+    cell = collider.cell
+    near = distance < cell - 1e-6
+    assert 0.3 < near.mean() < 0.9
+    np.testing.assert_allclose(plain[near], truth[near], atol=2e-6)
+    np.testing.assert_array_equal(plain[distance > cell + 1e-6], np.float32(cell))
+    inside = np.linalg.norm(points - v1.mean(axis=0), axis=1) < 0.245
+    assert (plain[near & inside] < 0).all() and (plain[near & ~inside & (radius[:, 0] > 0.255)]
+                                                  > 0).all()
+
+    # Hints: a neighbour of the nearest triangle (a bound just above the answer, which then
+    # lies in the few cells scanned), any triangle, an unfiled one, none, or out of range.
+    nearest = np.flatnonzero(mask)[which]
+    neighbours = [[] for _ in faces]
+    for a, b in sphere.face_adjacency:
+        neighbours[a].append(b)
+        neighbours[b].append(a)
+    hints = np.array([neighbours[t][k % 3] for k, t in enumerate(nearest)], np.int32)
+    anyhow = rng.random(len(points)) < 0.4
+    hints[anyhow] = rng.integers(-1, len(faces) + 50, size=anyhow.sum())
+    hints[:100] = np.flatnonzero(~mask)[:100]
+    hint = ti.ndarray(ti.i32, len(points))
+    hint.from_numpy(hints)
+    # The closest triangles of the last call are hints too: here another point's, at first.
+    # Equally near triangles (a closest point on their shared edge) differ by rounding only.
+    shuffled = rng.permutation(len(points))
+    np.testing.assert_allclose(collider.signed_distance(points[shuffled]), plain[shuffled],
+                               atol=1e-6)
+    np.testing.assert_allclose(collider.signed_distance(points, hint=hint), plain, atol=1e-6)
+    np.testing.assert_allclose(collider.signed_distance(points), plain, atol=1e-6)
+
+
 def test_colouring_gives_each_colour_vertex_disjoint_elements():
     """Coloured sweeps (parallel backends) update a colour's elements at once, which is exact
     Gauss-Seidel only if no two of them share a vertex."""

@@ -258,21 +258,26 @@ class BodyCollider:
             self.items = ti.ndarray(ti.i32, self._items_alloc)
             K.grid_build_serial(*args, self.items)
 
-    def signed_distance(self, x: np.ndarray) -> np.ndarray:
+    def signed_distance(self, x: np.ndarray, hint=None) -> np.ndarray:
         """Signed distance of points (N, 3) to the collider surface at the end of the current
-        frame (positive outside; `cell` or more where no triangle is within a grid cell)."""
+        frame (positive outside; `cell` or more where no triangle is within a grid cell), each
+        by its closest triangle. `hint` (a Taichi i32 array of N triangles, or -1, such as the
+        solver's tracked ones) and the closest triangles of the last call with as many points
+        only speed the search up (kernels.grid_signed_distance)."""
         n = len(x)
         if getattr(self, "_sd_n", None) != n:
             self._sd_n = n
             self._sd_x = ti.ndarray(VEC3, n)
-            self._sd_w = ti.ndarray(REAL, n)
-            self._sd_w.fill(1.0)
-            self._sd_tri = ti.ndarray(ti.i32, n)
+            self._sd_none = ti.ndarray(ti.i32, n)
+            self._sd_none.fill(-1)
+            self._sd_last = ti.ndarray(ti.i32, n)
+            self._sd_last.fill(-1)
             self._sd_out = ti.ndarray(REAL, n)
         self._sd_x.from_numpy(np.asarray(x, dtype=NP_REAL))
-        self.nearest(self._sd_x, self._sd_w, self._sd_tri, 1.0)  # every vertex: a full search
-        K.signed_distance_to_tracked(self._sd_x, self._sd_tri, self.faces, self.b1, self.n1,
-                                     float(self.cell), self._sd_out, backend.serial())
+        K.grid_signed_distance(self._sd_x, self._sd_none if hint is None else hint,
+                               self._sd_last, self.b1, self.n1, self.faces, self.mask,
+                               self.origin, self.inv_cell, self.dims, self.starts, self.items,
+                               self.tbox, float(self.cell), self._sd_out, backend.serial())
         return self._sd_out.to_numpy().astype(np.float64)
 
     def nearest(self, x, w, tri, s: float, which: int = K.SEARCH_ALL, guard=None,
