@@ -258,7 +258,7 @@ class BodyCollider:
             self.items = ti.ndarray(ti.i32, self._items_alloc)
             K.grid_build_serial(*args, self.items)
 
-    def signed_distance(self, x: np.ndarray, hint=None) -> np.ndarray:
+    def signed_distance(self, x: np.ndarray, hint: ti.Ndarray | None = None) -> np.ndarray:
         """Signed distance of points (N, 3) to the collider surface at the end of the current
         frame (positive outside; `cell` or more where no triangle is within a grid cell), each
         by its closest triangle. `hint` (a Taichi i32 array of N triangles, or -1, such as the
@@ -268,13 +268,12 @@ class BodyCollider:
         if getattr(self, "_sd_n", None) != n:
             self._sd_n = n
             self._sd_x = ti.ndarray(VEC3, n)
-            self._sd_none = ti.ndarray(ti.i32, n)
-            self._sd_none.fill(-1)
             self._sd_last = ti.ndarray(ti.i32, n)
             self._sd_last.fill(-1)
             self._sd_out = ti.ndarray(REAL, n)
         self._sd_x.from_numpy(np.asarray(x, dtype=NP_REAL))
-        K.grid_signed_distance(self._sd_x, self._sd_none if hint is None else hint,
+        # Without a hint the last call's triangles serve as both (measured twice: harmless).
+        K.grid_signed_distance(self._sd_x, self._sd_last if hint is None else hint,
                                self._sd_last, self.b1, self.n1, self.faces, self.mask,
                                self.origin, self.inv_cell, self.dims, self.starts, self.items,
                                self.tbox, float(self.cell), self._sd_out, backend.serial())

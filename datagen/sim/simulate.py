@@ -680,7 +680,7 @@ class _Simulation:
             if self.collider.grid_tag == 0:  # the first frame, before any step: no grid yet
                 b = self.body.vertices[body_frame]
                 self.collider.set_frames(b, b)
-            # The tracked triangles only bound the search .
+            # The solver's tracked triangles only bound the search (it finds the nearest).
             sd = self.collider.signed_distance(x, hint=self.solver.tri)
         strain = self._strain(x)
         qa_rows.append([_qa(self.model, p, v, sd, strain) for p in self.parts])
