@@ -881,15 +881,15 @@ def test_the_one_launch_serial_grid_is_the_three_kernel_grid(hashed, monkeypatch
     mask = np.ones(len(faces), bool)
     mask[::7] = False  # triangles the garment cannot reach are not filed
     collider = BodyCollider(faces, mask, len(v0))
-    collider.items = ti.ndarray(ti.i32, 8)  # far too short: the build must grow it
-    collider._items_alloc = 8
+    collider.swept.items = ti.ndarray(ti.i32, 8)  # far too short: the build must grow it
+    collider.swept.items_alloc = 8
     collider.set_frames(v0, v1)
     n_cells = int(np.prod(collider.dims_np)) if not collider.hashed else collider.hash_buckets
     assert collider.hashed == hashed
     total = int(collider.starts.to_numpy()[n_cells])
     serial_starts = collider.starts.to_numpy()[: n_cells + 1]
     serial_items = collider.items.to_numpy()[:total]
-    assert collider._items_alloc >= total > 8
+    assert collider.swept.items_alloc >= total > 8
     np.testing.assert_array_equal(collider.counts.to_numpy(), 0)
 
     counts = ti.ndarray(ti.i32, n_cells + 1)
@@ -944,21 +944,29 @@ def test_the_depth_search_finds_the_nearest_triangle_whatever_its_hint(hashed, m
     points = v1.mean(axis=0) + radius * direction
     plain = collider.signed_distance(points)
 
-    # The truth: trimesh's closest point on the filed triangles, signed along the body's
-    # vertex normals interpolated there (the collider's own, n1).
     filed_faces = faces[mask]
-    filed = trimesh.Trimesh(v1, filed_faces, process=False)
-    closest, distance, which = trimesh.proximity.closest_point(filed, points)
-    corners = filed_faces[which]
-    bary = trimesh.triangles.points_to_barycentric(v1[corners], closest)
-    normal = np.einsum("nk,nkj->nj", bary, collider.n1.to_numpy()[corners])
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    truth = np.einsum("nj,nj->n", points - closest, normal)
     cell = collider.cell
-    near = distance < cell - 1e-6
-    assert 0.3 < near.mean() < 0.9
-    np.testing.assert_allclose(plain[near], truth[near], atol=2e-6)
-    np.testing.assert_array_equal(plain[distance > cell + 1e-6], np.float32(cell))
+
+    def check_against_trimesh(end: np.ndarray, measured: np.ndarray):
+        """The truth: trimesh's closest point on the filed triangles at the frame's end,
+        signed along the body's vertex normals interpolated there (the collider's own, n1)."""
+        filed = trimesh.Trimesh(end, filed_faces, process=False)
+        closest, distance, which = trimesh.proximity.closest_point(filed, points)
+        corners = filed_faces[which]
+        bary = trimesh.triangles.points_to_barycentric(end[corners], closest)
+        normal = np.einsum("nk,nkj->nj", bary, collider.n1.to_numpy()[corners])
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        truth = np.einsum("nj,nj->n", points - closest, normal)
+        near = distance < cell - 1e-6
+        assert 0.3 < near.mean() < 0.9
+        np.testing.assert_allclose(measured[near], truth[near], atol=2e-6)
+        np.testing.assert_array_equal(measured[distance > cell + 1e-6], np.float32(cell))
+        return near, which
+
+    near, which = check_against_trimesh(v1, plain)
+    # The end boxes fill fewer cells than the boxes swept over the frame.
+    filings = [int(g.starts.to_numpy()[collider.n_cells]) for g in (collider.end, collider.swept)]
+    assert filings[0] < 0.8 * filings[1], filings
     inside = np.linalg.norm(points - v1.mean(axis=0), axis=1) < 0.245
     assert (plain[near & inside] < 0).all() and (plain[near & ~inside & (radius[:, 0] > 0.255)]
                                                   > 0).all()
@@ -983,6 +991,15 @@ def test_the_depth_search_finds_the_nearest_triangle_whatever_its_hint(hashed, m
                                atol=1e-6)
     np.testing.assert_allclose(collider.signed_distance(points, hint=hint), plain, atol=1e-6)
     np.testing.assert_allclose(collider.signed_distance(points), plain, atol=1e-6)
+
+    # The search reads a grid of the frame's end boxes, built anew each frame: the next frame
+    # moves the body by more than a cell, and a body at rest over a frame (its swept grid is the
+    # same boxes) too. The last call's triangles, now far from nearest, are hints still.
+    v2 = v1 + [-0.04, 0.01, 0.02]
+    collider.set_frames(v1, v2)
+    check_against_trimesh(v2, collider.signed_distance(points))
+    collider.set_frames(v2, v2)
+    check_against_trimesh(v2, collider.signed_distance(points, hint=hint))
 
 
 def test_colouring_gives_each_colour_vertex_disjoint_elements():

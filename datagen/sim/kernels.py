@@ -2182,17 +2182,19 @@ def hint_bound(p: vec3, t: ti.i32, b: V3, faces: I3, mask: I1, best: REAL, best_
 def grid_signed_distance(x: V3, hint: I1, last: I1, b: V3, n: V3, faces: I3, mask: I1,
                          origin: vec3, inv_cell: REAL, dims: ti.math.ivec3, starts: I1,
                          items: I1, tbox: V8, far: REAL, out: F1, serialize: ti.template()):
-    """Signed distance of each point to its closest collider triangle at the end of the frame
-    (`b`, vertex normals `n` for the sign), searching the 27 grid cells around it; `far` where
-    no triangle is within `far` (one cell). Two hints per point (a triangle, or -1) only start
-    the search: `hint` (the depth QA passes the solver's tracked triangles) and `last`, the
-    closest triangle of the previous call, which the call then overwrites (the cloth that the
-    solver does not track, within a cell of the body, moves less than a cell a frame). The
-    nearer one bounds the search, so that a point a few millimetres from the body scans the one
-    to four cells within that distance instead of 27: a third of the time on a walking t-shirt
-    and half on a draped sheet. A hint that is not a filed triangle (`mask`) is ignored, and the
-    result does not depend on the hints, except between equally near triangles. `serialize` on
-    serial backends (see copy_in)."""
+    """Signed distance of each point to its closest collider triangle at the end of the frame (`b`,
+    vertex normals `n` for the sign), searching the 27 grid cells around it; `far` where no
+    triangle is within `far` (one cell). The grid (`starts`, `items`, `tbox`) must file each
+    triangle in the cells of its box at `b`: BodyCollider passes its grid of the end boxes,
+    which fills a quarter of the cells that the solver's boxes swept over the frame do. Two
+    hints per point (a triangle, or -1) only start the search: `hint` (the depth QA passes the
+    solver's tracked triangles) and `last`, the closest triangle of the previous call, which the
+    call then overwrites (the cloth that the solver does not track, within a cell of the body,
+    moves less than a cell a frame). The nearer one bounds the search, so that a point a few
+    millimetres from the body scans the one to four cells within that distance instead of 27: a
+    third of the time on a walking t-shirt and half on a draped sheet. A hint that is not a
+    filed triangle (`mask`) is ignored, and the result does not depend on the hints, except
+    between equally near triangles. `serialize` on serial backends (see copy_in)."""
     ti.loop_config(serialize=serialize)
     for i in range(x.shape[0]):
         p = x[i]
