@@ -131,8 +131,10 @@ class BodyCollider:
         # Two grids over the same cells: `swept` files each triangle's box swept over the frame
         # (the solver's searches at any fraction of it); `end` its box at the frame's end only,
         # for the depth QA (signed_distance), built when asked for. A walking body's swept boxes
-        # fill 4.4 times as many cells (228k against 52k filings of 27k triangles), and the QA's
-        # search took 24 ms a frame through them, 14 through the end grid (plus 2 to build it).
+        # are filed 98k times for its 18.5k colliding triangles (143k before the cells moved
+        # with the body: kernels.count_triangle), its end boxes 52k times; the QA's search took
+        # 24 ms a frame through the swept grid (143k), 14 through the end grid (plus 2 to
+        # build it).
         end_tbox = ti.ndarray(K.GUARD, len(self.faces_np))
         end_tbox.from_numpy(boxes)
         self.swept = TriangleGrid(tbox)
@@ -227,7 +229,8 @@ class BodyCollider:
 
     def _build_grid(self) -> None:
         self.grid_tag = next(_GRID_TAGS)
-        K.collider_bounds(self.b0, self.b1, self.used, self.box, backend.serial())
+        shift = VEC3(*self.shift_np)
+        K.collider_bounds(self.b0, self.b1, shift, self.used, self.box, backend.serial())
         lo, hi = self.box[0] - self.cell, self.box[1] + self.cell
         dims = np.maximum(np.ceil((hi - lo) / self.cell).astype(np.int64), 1)
         n_cells = int(np.prod(dims))
@@ -241,7 +244,7 @@ class BodyCollider:
         self.inv_cell = float(1.0 / self.cell)
         self.dims = ti.math.ivec3(*dims.astype(np.int32))
         self.dims_np = dims.astype(np.int32)
-        self._fill(self.swept, self.b0, self.b1)
+        self._fill(self.swept, self.b0, self.b1, VEC3(0.0, 0.0, 0.0), shift)
 
     def _end_grid(self) -> TriangleGrid:
         """The grid of the triangles' boxes at the frame's end (the swept one where the body
@@ -249,12 +252,14 @@ class BodyCollider:
         if self._at_rest:
             return self.swept
         if self.end.tag != self.grid_tag:
-            self._fill(self.end, self.b1, self.b1)
+            shift = VEC3(*self.shift_np)
+            self._fill(self.end, self.b1, self.b1, shift, shift)
         return self.end
 
-    def _fill(self, grid: TriangleGrid, b0, b1) -> None:
-        """File the triangles' boxes swept from b0 to b1 into `grid` (this frame's cells),
-        growing its arrays where they are short."""
+    def _fill(self, grid: TriangleGrid, b0, b1, shift0, shift1) -> None:
+        """File the triangles' boxes swept from b0 - shift0 to b1 - shift1 into `grid` (this
+        frame's cells, in coordinates that move with the body's mean motion:
+        kernels.count_triangle), growing its arrays where they are short."""
         n_cells = self.n_cells
         grid.tag = self.grid_tag
         if n_cells + 1 > grid.n_cells_alloc:
@@ -270,8 +275,8 @@ class BodyCollider:
             if grid.items is None:
                 grid.items_alloc = 4 * len(self.faces_np) + 16
                 grid.items = ti.ndarray(ti.i32, grid.items_alloc)
-            args = (b0, b1, self.faces, self.mask, self.origin, self.inv_cell, self.dims,
-                    n_cells, grid.counts, self.relative_travel, grid.tbox, grid.starts)
+            args = (b0, b1, shift0, shift1, self.faces, self.mask, self.origin, self.inv_cell,
+                    self.dims, n_cells, grid.counts, self.relative_travel, grid.tbox, grid.starts)
             total = K.grid_build_serial(*args, grid.items)
             if total > grid.items_alloc:
                 grid.items_alloc = int(total * 1.5) + 16
@@ -280,8 +285,8 @@ class BodyCollider:
             return
         # Parallel backends from here: the kernels' `serialize` flags are False (a test runs
         # these three kernels serialized to compare them with the one-launch serial grid).
-        K.grid_count(b0, b1, self.faces, self.mask, self.origin, self.inv_cell, self.dims,
-                     grid.counts, self.relative_travel, grid.tbox, False)
+        K.grid_count(b0, b1, shift0, shift1, self.faces, self.mask, self.origin, self.inv_cell,
+                     self.dims, grid.counts, self.relative_travel, grid.tbox, False)
         K.grid_prefix(grid.counts, grid.starts, n_cells, grid.block_starts)
         total = int(grid.starts[n_cells])
         if total > grid.items_alloc:
@@ -311,8 +316,9 @@ class BodyCollider:
         # Without a hint the last call's triangles serve as both (measured twice: harmless).
         K.grid_signed_distance(self._sd_x, self._sd_last if hint is None else hint,
                                self._sd_last, self.b1, self.n1, self.faces, self.mask,
-                               self.origin, self.inv_cell, self.dims, grid.starts, grid.items,
-                               grid.tbox, float(self.cell), self._sd_out, backend.serial())
+                               self.origin, self.inv_cell, self.dims, VEC3(*self.shift_np),
+                               grid.starts, grid.items, grid.tbox, float(self.cell),
+                               self._sd_out, backend.serial())
         return self._sd_out.to_numpy().astype(np.float64)
 
     def nearest(self, x, w, tri, s: float, which: int = K.SEARCH_ALL, guard=None,

@@ -1163,9 +1163,11 @@ def collide_layers(
 
 
 @ti.kernel
-def collider_bounds(b0: V3, b1: V3, used: I1, box: V3, serialize: ti.template()):
+def collider_bounds(b0: V3, b1: V3, shift: vec3, used: I1, box: V3, serialize: ti.template()):
     """box[0], box[1]: the lowest and highest corner of the `used` collider vertices at both
-    b0 and b1 (the grid's extent). Minima and maxima do not depend on the order threads run;
+    b0 and b1 - shift (the grid's extent, in its coordinates, which move with the body's mean
+    motion `shift` over the frame: count_triangle). Minima and maxima do not depend on the
+    order threads run;
     `serialize` on a serial backend makes the atomics plain (numpy took 1 ms for a body: it
     reduces the first axis of an (N, 3) array slowly)."""
     box[0] = vec3(3.0e38)
@@ -1174,8 +1176,8 @@ def collider_bounds(b0: V3, b1: V3, used: I1, box: V3, serialize: ti.template())
     for k in range(used.shape[0]):
         i = used[k]
         for c in ti.static(range(3)):
-            ti.atomic_min(box[0][c], ti.min(b0[i][c], b1[i][c]))
-            ti.atomic_max(box[1][c], ti.max(b0[i][c], b1[i][c]))
+            ti.atomic_min(box[0][c], ti.min(b0[i][c], b1[i][c] - shift[c]))
+            ti.atomic_max(box[1][c], ti.max(b0[i][c], b1[i][c] - shift[c]))
 
 
 @ti.func
@@ -1229,20 +1231,23 @@ def grid_cell(c: ti.math.ivec3, dims: ti.math.ivec3) -> ti.i32:
 
 @ti.func
 def count_triangle(
-    t: ti.i32, b0: V3, b1: V3, faces: I3, origin: vec3, inv_cell: REAL, dims: ti.math.ivec3,
-    counts: I1, travel: F1, tbox: V8,
+    t: ti.i32, b0: V3, b1: V3, shift0: vec3, shift1: vec3, faces: I3, origin: vec3,
+    inv_cell: REAL, dims: ti.math.ivec3, counts: I1, travel: F1, tbox: V8,
 ):
-    """Triangle t's box swept over the frame into tbox[t], and one more in each cell it
-    overlaps (grid_count)."""
+    """Triangle t's box swept from b0 - shift0 to b1 - shift1 into tbox[t], and one more in
+    each cell it overlaps (grid_count). The grid's coordinates move with the body's mean motion
+    over the frame (`shift`): a point p at frame fraction s is at p - shift s in them, and a
+    body vertex's path b0 + (b1 - b0) s is at b0 + (b1 - shift - b0) s, a straight line from b0
+    to b1 - shift whose box holds it all the way (shift0 = 0, shift1 = shift). A walking
+    body's triangles sweep 4 cm a frame in the world, mostly with the torso: their boxes in
+    moving coordinates fill 31 % fewer cells, and cloth that moves with the body stays near
+    the cells its search scanned (nearest_one's guards). The depth QA's grid files the boxes
+    at the frame's end (b0 = b1, shift0 = shift1 = shift)."""
     f = faces[t]
-    lo = ti.min(
-        ti.min(ti.min(b0[f[0]], b0[f[1]]), ti.min(b0[f[2]], b1[f[0]])),
-        ti.min(b1[f[1]], b1[f[2]]),
-    )
-    hi = ti.max(
-        ti.max(ti.max(b0[f[0]], b0[f[1]]), ti.max(b0[f[2]], b1[f[0]])),
-        ti.max(b1[f[1]], b1[f[2]]),
-    )
+    a0, a1, a2 = b0[f[0]] - shift0, b0[f[1]] - shift0, b0[f[2]] - shift0
+    e0, e1, e2 = b1[f[0]] - shift1, b1[f[1]] - shift1, b1[f[2]] - shift1
+    lo = ti.min(ti.min(ti.min(a0, a1), ti.min(a2, e0)), ti.min(e1, e2))
+    hi = ti.max(ti.max(ti.max(a0, a1), ti.max(a2, e0)), ti.max(e1, e2))
     speed = ti.max(travel[f[0]], travel[f[1]], travel[f[2]])
     tbox[t] = GUARD(lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], speed, tbox[t][T_PART])
     c0 = first_cell(lo, origin, inv_cell)
@@ -1255,21 +1260,25 @@ def count_triangle(
 
 @ti.func
 def count_triangles(
-    b0: V3, b1: V3, faces: I3, mask: I1, origin: vec3, inv_cell: REAL, dims: ti.math.ivec3,
-    counts: I1, travel: F1, tbox: V8, serialize: ti.template(),
+    b0: V3, b1: V3, shift0: vec3, shift1: vec3, faces: I3, mask: I1, origin: vec3,
+    inv_cell: REAL, dims: ti.math.ivec3, counts: I1, travel: F1, tbox: V8,
+    serialize: ti.template(),
 ):
     """count_triangle for every triangle the mask keeps: grid_count's loop, and the first of
     grid_build_serial's."""
     ti.loop_config(serialize=serialize)
     for t in range(faces.shape[0]):
         if mask[t] != 0:
-            count_triangle(t, b0, b1, faces, origin, inv_cell, dims, counts, travel, tbox)
+            count_triangle(t, b0, b1, shift0, shift1, faces, origin, inv_cell, dims, counts,
+                           travel, tbox)
 
 
 @ti.kernel
 def grid_count(
     b0: V3,
     b1: V3,
+    shift0: vec3,
+    shift1: vec3,
     faces: I3,
     mask: I1,
     origin: vec3,
@@ -1280,11 +1289,13 @@ def grid_count(
     tbox: V8,
     serialize: ti.template(),
 ):
-    """Count each cell's triangles (boxes swept over the frame), and keep each triangle's box
-    and fastest corner's `travel` in `tbox` (lo xyz, hi xyz, travel, 0) for nearest_one.
+    """Count each cell's triangles (boxes swept over the frame, count_triangle), and keep each
+    triangle's box and fastest corner's `travel` in `tbox` (lo xyz, hi xyz, travel, 0) for
+    nearest_one.
     `serialize` on a serial backend: the counts' atomic adds become plain ones (a walking
     body's grid counted in 0.6 ms instead of 1.1)."""
-    count_triangles(b0, b1, faces, mask, origin, inv_cell, dims, counts, travel, tbox, serialize)
+    count_triangles(b0, b1, shift0, shift1, faces, mask, origin, inv_cell, dims, counts, travel,
+                    tbox, serialize)
 
 
 # Cells per block of the grid's prefix sum: blocks are summed in parallel, their sums prefixed
@@ -1385,6 +1396,8 @@ def grid_fill(
 def grid_build_serial(
     b0: V3,
     b1: V3,
+    shift0: vec3,
+    shift1: vec3,
     faces: I3,
     mask: I1,
     origin: vec3,
@@ -1404,7 +1417,8 @@ def grid_build_serial(
     order as the serial grid_fill does. Returns the number of entries; where `items` is too
     short for them nothing is filed (the caller grows it and calls again). `counts` end at zero
     either way."""
-    count_triangles(b0, b1, faces, mask, origin, inv_cell, dims, counts, travel, tbox, True)
+    count_triangles(b0, b1, shift0, shift1, faces, mask, origin, inv_cell, dims, counts, travel,
+                    tbox, True)
     run = 0
     ti.loop_config(serialize=True)
     for c in range(n_cells):
@@ -1484,25 +1498,30 @@ def nearest_one(
     fold_at: ti.i32,
 ):
     """The closest collider triangle to cloth vertex i within `max_dist` (else -1), at body
-    positions interpolated at fraction s, searching the 27 grid cells around the vertex.
-    `which` vertices are searched (SEARCH_ALL, SEARCH_UNTRACKED or SEARCH_TRACKED; the others
-    keep their triangle or none). With SEARCH_UNTRACKED, a vertex whose last
-    search found nothing is not searched again while it provably cannot be near: that search
+    positions interpolated at fraction s, searching the 27 grid cells around the vertex (in the
+    grid's coordinates, which move with the body's mean motion over the frame, `shift`: the
+    vertex at p - shift s_frame; count_triangle). `which` vertices are searched (SEARCH_ALL,
+    SEARCH_UNTRACKED or SEARCH_TRACKED; the others keep their triangle or none). With
+    SEARCH_UNTRACKED, a vertex whose last search found nothing is not searched again while it
+    provably cannot be near: that search
     showed no triangle within `max_dist` of guard.xyz, and since then
     - the vertex has moved |x - guard.xyz| and the triangles at most |odo - guard.odo|, `odo`
       being how far the body's fastest vertex has travelled; or,
     - the grid is still the one searched (guard.tag == grid_tag; grids are numbered and the
       numbers never repeat). It holds each triangle's box swept over the whole frame, so while
-      the vertex stays within half of `max_dist` of guard.xyz only the searched cells'
-      triangles can come near, and they can close in by no more than the vertex's and their
-      own motion relative to the body's mean motion over the frame (`shift`): the vertex's
+      the vertex stays within half of `max_dist` of where it was searched in the grid's
+      coordinates, which move with the body's mean motion over the frame (`shift`), only the
+      searched cells' triangles can come near, and they can close in by no more than the
+      vertex's and their own motion relative to that mean motion: the vertex's
       |x - guard.xyz - shift * (s_frame - guard.time)|, theirs the fastest corner's travel
       (each collider vertex's distance from the mean motion over the frame, kept per triangle
       in `tbox` with its box: grid_count) times the frame fraction since. `s_frame` is the
       fraction of the frame the body is at.
     The odometer counts the fastest limb, and on a walking body it had every loose vertex
     searched again at almost every substep: half of an xpbd frame. Cloth near the torso moves
-    with it, so the local, relative bound holds for several substeps.
+    with it, so the local, relative bound holds for several substeps (in world coordinates the
+    cloth left the searched cells within a third of a frame, and a fifth of the loose vertices
+    were searched again at every substep).
 
     A tracked vertex follows its triangle's surface, and another body part closing in is not
     on that surface: a sleeve in the elbow's crook, 15-40 mm from the upper arm it tracked, was
@@ -1580,7 +1599,8 @@ def nearest_one(
     searched = which == SEARCH_ALL or (which == SEARCH_UNTRACKED) == (tri[i] < 0) or again
     if w[i] > 0.0 and searched and not clear:
         p = x[i]
-        cell = ti.cast(ti.floor((p - origin) * inv_cell), ti.i32)
+        p_grid = p - shift * s_frame  # in the grid's coordinates (count_triangle)
+        cell = ti.cast(ti.floor((p_grid - origin) * inv_cell), ti.i32)
         best = max_dist * max_dist
         # A triangle whose box is farther than the best so far is not measured: the same
         # triangle wins as when every one is (a 1 um margin covers rounding). Most searches
@@ -1600,8 +1620,8 @@ def nearest_one(
                     # The box swept over the frame holds the one at s: a triangle whose swept
                     # box is beyond the bound is culled without reading its corners (most
                     # are: the same ones are measured, in the same order, as without it).
-                    swept = ti.max(vec3(tb[0], tb[1], tb[2]) - p, 0.0,
-                                   p - vec3(tb[3], tb[4], tb[5]))
+                    swept = ti.max(vec3(tb[0], tb[1], tb[2]) - p_grid, 0.0,
+                                   p_grid - vec3(tb[3], tb[4], tb[5]))
                     # A triangle filed in several of the 27 cells is measured in the first
                     # one scanned (the lowest corner of its cells within the block): the same
                     # triangles in the same order as measuring every copy, without repeating
@@ -1628,8 +1648,8 @@ def nearest_one(
             guard[i] = GUARD(p[0], p[1], p[2], odo, grid_tag, s_frame, fastest, 0.0)
         elif tbox[best_t][T_PART] >= 0.0:
             part = tbox[best_t][T_PART]
-            other = other_surface(p, best_t, part, b0, b1, faces, origin, inv_cell, dims,
-                                  starts, items, s, max_dist, tbox)
+            other = other_surface(p, p_grid, best_t, part, b0, b1, faces, origin, inv_cell,
+                                  dims, starts, items, s, max_dist, tbox)
             guard[i] = GUARD(p[0], p[1], p[2], odo, grid_tag, s_frame, fastest,
                              1.0 + part + other)
 
@@ -1730,31 +1750,32 @@ def guard_holds(p: vec3, g: GUARD, budget: REAL, local: REAL, odo: REAL, grid_ta
                 s_frame: REAL, shift: vec3) -> ti.i32:
     """Whether guard g still proves that nothing it guards against has come within `budget`
     of the vertex at p: by the odometer, or, on the grid it was searched on and while the
-    vertex stayed within `local` of where it was, by the motions relative to the body's mean
-    (nearest_one)."""
+    vertex stayed within `local` of where it was in the grid's coordinates (which move with
+    the body's mean motion), by the motions relative to that mean (nearest_one)."""
     drift = p - vec3(g[0], g[1], g[2])
-    moved = drift.norm()
-    holds = moved + ti.abs(odo - g[G_ODO]) < budget
-    if g[G_TAG] == grid_tag and moved < local:
+    holds = drift.norm() + ti.abs(odo - g[G_ODO]) < budget
+    if g[G_TAG] == grid_tag:
         since = s_frame - g[G_TIME]
-        closing = (drift - shift * since).norm() + g[G_SPEED] * ti.abs(since)
-        holds = holds or closing < budget
+        relative = (drift - shift * since).norm()
+        if relative < local:
+            holds = holds or relative + g[G_SPEED] * ti.abs(since) < budget
     return holds
 
 
 @ti.func
-def other_surface(p: vec3, best_t: ti.i32, part: REAL, b0: V3, b1: V3, faces: I3,
-                  origin: vec3, inv_cell: REAL, dims: ti.math.ivec3, starts: I1, items: I1,
-                  s: REAL, reach: REAL, tbox: V8) -> REAL:
+def other_surface(p: vec3, p_grid: vec3, best_t: ti.i32, part: REAL, b0: V3, b1: V3,
+                  faces: I3, origin: vec3, inv_cell: REAL, dims: ti.math.ivec3, starts: I1,
+                  items: I1, s: REAL, reach: REAL, tbox: V8) -> REAL:
     """How far from p the nearest triangle of a body part other than `part` that faces the
     tracked triangle best_t is (FACING_COS), if it is within `reach` (m, below OTHER_NONE; the
-    27 cells around p hold every triangle nearer than a cell), else OTHER_NONE."""
+    27 cells around p, at p_grid in the grid's coordinates, hold every triangle nearer than a
+    cell), else OTHER_NONE."""
     f = faces[best_t]
     a = lerp3(b0[f[0]], b1[f[0]], s)
     nb = (lerp3(b0[f[1]], b1[f[1]], s) - a).cross(lerp3(b0[f[2]], b1[f[2]], s) - a)
     nbl = nb.norm()
     best = reach * reach
-    cell = ti.cast(ti.floor((p - origin) * inv_cell), ti.i32)
+    cell = ti.cast(ti.floor((p_grid - origin) * inv_cell), ti.i32)
     for k in range(27):
         c = cell + ti.math.ivec3(k // 9 - 1, (k // 3) % 3 - 1, k % 3 - 1)
         cid = grid_cell(c, dims)
@@ -1763,8 +1784,8 @@ def other_surface(p: vec3, best_t: ti.i32, part: REAL, b0: V3, b1: V3, faces: I3
                 t = items[q]
                 tb = tbox[t]
                 if tb[T_PART] != part:
-                    swept = ti.max(vec3(tb[0], tb[1], tb[2]) - p, 0.0,
-                                   p - vec3(tb[3], tb[4], tb[5]))
+                    swept = ti.max(vec3(tb[0], tb[1], tb[2]) - p_grid, 0.0,
+                                   p_grid - vec3(tb[3], tb[4], tb[5]))
                     if swept.norm_sqr() < best:
                         g = faces[t]
                         ta = lerp3(b0[g[0]], b1[g[0]], s)
@@ -2180,13 +2201,16 @@ def hint_bound(p: vec3, t: ti.i32, b: V3, faces: I3, mask: I1, best: REAL, best_
 
 @ti.kernel
 def grid_signed_distance(x: V3, hint: I1, last: I1, b: V3, n: V3, faces: I3, mask: I1,
-                         origin: vec3, inv_cell: REAL, dims: ti.math.ivec3, starts: I1,
-                         items: I1, tbox: V8, far: REAL, out: F1, serialize: ti.template()):
-    """Signed distance of each point to its closest collider triangle at the end of the frame (`b`,
-    vertex normals `n` for the sign), searching the 27 grid cells around it; `far` where no
+                         origin: vec3, inv_cell: REAL, dims: ti.math.ivec3, shift: vec3,
+                         starts: I1, items: I1, tbox: V8, far: REAL, out: F1,
+                         serialize: ti.template()):
+    """Signed distance of each point to its closest collider triangle at the end of the frame
+    (`b`, vertex normals `n` for the sign), searching the 27 grid cells around it; `far` where no
     triangle is within `far` (one cell). The grid (`starts`, `items`, `tbox`) must file each
-    triangle in the cells of its box at `b`: BodyCollider passes its grid of the end boxes,
-    which fills a quarter of the cells that the solver's boxes swept over the frame do. Two
+    triangle in the cells of its box at `b`, in the grid's coordinates (b - shift: the frame's
+    end in coordinates that move with the body's mean motion, count_triangle): BodyCollider
+    passes its grid of the end boxes, which fills a quarter of the cells that the solver's
+    boxes swept over the frame do. Two
     hints per point (a triangle, or -1) only start the search: `hint` (the depth QA passes the
     solver's tracked triangles) and `last`, the closest triangle of the previous call, which the
     call then overwrites (the cloth that the solver does not track, within a cell of the body,
@@ -2204,9 +2228,10 @@ def grid_signed_distance(x: V3, hint: I1, last: I1, b: V3, n: V3, faces: I3, mas
         bound = reach * reach
         # Only the cells within `reach` of p, of the 27 around it: where the hint tracks the
         # body a millimetre away, one to four instead of 27.
-        cell = ti.cast(ti.floor((p - origin) * inv_cell), ti.i32)
-        lo = ti.max(ti.cast(ti.floor((p - reach - origin) * inv_cell), ti.i32), cell - 1)
-        hi = ti.min(ti.cast(ti.floor((p + reach - origin) * inv_cell), ti.i32), cell + 1)
+        p_grid = p - shift
+        cell = ti.cast(ti.floor((p_grid - origin) * inv_cell), ti.i32)
+        lo = ti.max(ti.cast(ti.floor((p_grid - reach - origin) * inv_cell), ti.i32), cell - 1)
+        hi = ti.min(ti.cast(ti.floor((p_grid + reach - origin) * inv_cell), ti.i32), cell + 1)
         span = hi - lo + 1
         for k in range(span[0] * span[1] * span[2]):
             c = lo + ti.math.ivec3(k // (span[1] * span[2]), (k // span[2]) % span[1],
@@ -2216,8 +2241,8 @@ def grid_signed_distance(x: V3, hint: I1, last: I1, b: V3, n: V3, faces: I3, mas
                 for q in range(starts[cid], starts[cid + 1]):
                     t = items[q]
                     tb = tbox[t]
-                    swept = ti.max(vec3(tb[0], tb[1], tb[2]) - p, 0.0,
-                                   p - vec3(tb[3], tb[4], tb[5]))
+                    swept = ti.max(vec3(tb[0], tb[1], tb[2]) - p_grid, 0.0,
+                                   p_grid - vec3(tb[3], tb[4], tb[5]))
                     if (swept.norm_sqr() <= bound
                             and scanned_first(c, lo, vec3(tb[0], tb[1], tb[2]), origin,
                                               inv_cell)):
