@@ -903,7 +903,7 @@ def test_the_one_launch_serial_grid_is_the_three_kernel_grid(hashed, monkeypatch
     boxes[:, K.T_PART] = -1.0  # set once (a collider without parts): grid_count keeps it
     tbox.from_numpy(boxes)
     args = (collider.origin, collider.inv_cell, collider.dims)
-    K.grid_count(collider.b0, collider.b1, VEC3(0.0, 0.0, 0.0), VEC3(*collider.shift_np),
+    K.grid_count(collider.b0, collider.b1, VEC3(0.0, 0.0, 0.0), collider.shift,
                  collider.faces, collider.mask, *args, counts, collider.relative_travel, tbox,
                  True)
     K.grid_prefix(counts, starts, n_cells, blocks)

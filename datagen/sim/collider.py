@@ -133,14 +133,15 @@ class BodyCollider:
         # for the depth QA (signed_distance), built when asked for. A walking body's swept boxes
         # are filed 98k times for its 18.5k colliding triangles (143k before the cells moved
         # with the body: kernels.count_triangle), its end boxes 52k times; the QA's search took
-        # 24 ms a frame through the swept grid (143k), 14 through the end grid (plus 2 to
-        # build it).
+        # 24 ms a frame through the swept grid in fixed cells, 14 through the end grid (plus 2
+        # to build it).
         end_tbox = ti.ndarray(K.GUARD, len(self.faces_np))
         end_tbox.from_numpy(boxes)
         self.swept = TriangleGrid(tbox)
         self.end = TriangleGrid(end_tbox)
         self.n_cells = 0
         self.shift_np = np.zeros(3)
+        self.shift = VEC3(0.0, 0.0, 0.0)  # shift_np as the kernels take it
         # The frame's fold fields (set_fold; datagen.sim.fold_fields): [0] where none.
         self.fold_np = np.zeros(1, NP_REAL)
         self.fold_nd = ti.ndarray(REAL, 1)
@@ -195,6 +196,7 @@ class BodyCollider:
         # The body's mean motion over the frame, and each vertex's distance from it: cloth
         # near the torso moves with it (kernels.nearest_one's guards).
         self.shift_np = motion.mean(axis=1)
+        self.shift = VEC3(*self.shift_np)
         relative = motion - self.shift_np[:, None]
         self.relative_travel = np.sqrt(np.einsum("ci,ci->i", relative, relative)).astype(NP_REAL)
         self._at_rest = bool(np.array_equal(v0, v1))
@@ -229,8 +231,7 @@ class BodyCollider:
 
     def _build_grid(self) -> None:
         self.grid_tag = next(_GRID_TAGS)
-        shift = VEC3(*self.shift_np)
-        K.collider_bounds(self.b0, self.b1, shift, self.used, self.box, backend.serial())
+        K.collider_bounds(self.b0, self.b1, self.shift, self.used, self.box, backend.serial())
         lo, hi = self.box[0] - self.cell, self.box[1] + self.cell
         dims = np.maximum(np.ceil((hi - lo) / self.cell).astype(np.int64), 1)
         n_cells = int(np.prod(dims))
@@ -244,7 +245,7 @@ class BodyCollider:
         self.inv_cell = float(1.0 / self.cell)
         self.dims = ti.math.ivec3(*dims.astype(np.int32))
         self.dims_np = dims.astype(np.int32)
-        self._fill(self.swept, self.b0, self.b1, VEC3(0.0, 0.0, 0.0), shift)
+        self._fill(self.swept, self.b0, self.b1, VEC3(0.0, 0.0, 0.0), self.shift)
 
     def _end_grid(self) -> TriangleGrid:
         """The grid of the triangles' boxes at the frame's end (the swept one where the body
@@ -252,8 +253,7 @@ class BodyCollider:
         if self._at_rest:
             return self.swept
         if self.end.tag != self.grid_tag:
-            shift = VEC3(*self.shift_np)
-            self._fill(self.end, self.b1, self.b1, shift, shift)
+            self._fill(self.end, self.b1, self.b1, self.shift, self.shift)
         return self.end
 
     def _fill(self, grid: TriangleGrid, b0, b1, shift0, shift1) -> None:
@@ -316,7 +316,7 @@ class BodyCollider:
         # Without a hint the last call's triangles serve as both (measured twice: harmless).
         K.grid_signed_distance(self._sd_x, self._sd_last if hint is None else hint,
                                self._sd_last, self.b1, self.n1, self.faces, self.mask,
-                               self.origin, self.inv_cell, self.dims, VEC3(*self.shift_np),
+                               self.origin, self.inv_cell, self.dims, self.shift,
                                grid.starts, grid.items, grid.tbox, float(self.cell),
                                self._sd_out, backend.serial())
         return self._sd_out.to_numpy().astype(np.float64)
@@ -332,7 +332,7 @@ class BodyCollider:
         K.grid_nearest(x, w, self.b0, self.b1, self.faces, self.origin, self.inv_cell,
                        self.dims, self.starts, self.items, float(s), float(self.cell), tri,
                        int(which), guard, float(odo), float(self.grid_tag),
-                       VEC3(*self.shift_np), self.tbox, self.fold_nd, 0)
+                       self.shift, self.tbox, self.fold_nd, 0)
 
     def _scratch_guard(self, n: int):
         from datagen.sim.solvers import fresh_guards

@@ -1167,9 +1167,8 @@ def collider_bounds(b0: V3, b1: V3, shift: vec3, used: I1, box: V3, serialize: t
     """box[0], box[1]: the lowest and highest corner of the `used` collider vertices at both
     b0 and b1 - shift (the grid's extent, in its coordinates, which move with the body's mean
     motion `shift` over the frame: count_triangle). Minima and maxima do not depend on the
-    order threads run;
-    `serialize` on a serial backend makes the atomics plain (numpy took 1 ms for a body: it
-    reduces the first axis of an (N, 3) array slowly)."""
+    order threads run; `serialize` on a serial backend makes the atomics plain (numpy took 1
+    ms for a body: it reduces the first axis of an (N, 3) array slowly)."""
     box[0] = vec3(3.0e38)
     box[1] = vec3(-3.0e38)
     ti.loop_config(serialize=serialize)
@@ -1291,9 +1290,8 @@ def grid_count(
 ):
     """Count each cell's triangles (boxes swept over the frame, count_triangle), and keep each
     triangle's box and fastest corner's `travel` in `tbox` (lo xyz, hi xyz, travel, 0) for
-    nearest_one.
-    `serialize` on a serial backend: the counts' atomic adds become plain ones (a walking
-    body's grid counted in 0.6 ms instead of 1.1)."""
+    nearest_one. `serialize` on a serial backend: the counts' atomic adds become plain ones (a
+    walking body's grid counted in 0.6 ms instead of 1.1)."""
     count_triangles(b0, b1, shift0, shift1, faces, mask, origin, inv_cell, dims, counts, travel,
                     tbox, serialize)
 
@@ -1503,8 +1501,8 @@ def nearest_one(
     vertex at p - shift s_frame; count_triangle). `which` vertices are searched (SEARCH_ALL,
     SEARCH_UNTRACKED or SEARCH_TRACKED; the others keep their triangle or none). With
     SEARCH_UNTRACKED, a vertex whose last search found nothing is not searched again while it
-    provably cannot be near: that search
-    showed no triangle within `max_dist` of guard.xyz, and since then
+    provably cannot be near: that search showed no triangle within `max_dist` of guard.xyz,
+    and since then
     - the vertex has moved |x - guard.xyz| and the triangles at most |odo - guard.odo|, `odo`
       being how far the body's fastest vertex has travelled; or,
     - the grid is still the one searched (guard.tag == grid_tag; grids are numbered and the
@@ -2209,16 +2207,16 @@ def grid_signed_distance(x: V3, hint: I1, last: I1, b: V3, n: V3, faces: I3, mas
     triangle is within `far` (one cell). The grid (`starts`, `items`, `tbox`) must file each
     triangle in the cells of its box at `b`, in the grid's coordinates (b - shift: the frame's
     end in coordinates that move with the body's mean motion, count_triangle): BodyCollider
-    passes its grid of the end boxes, which fills a quarter of the cells that the solver's
-    boxes swept over the frame do. Two
-    hints per point (a triangle, or -1) only start the search: `hint` (the depth QA passes the
-    solver's tracked triangles) and `last`, the closest triangle of the previous call, which the
-    call then overwrites (the cloth that the solver does not track, within a cell of the body,
-    moves less than a cell a frame). The nearer one bounds the search, so that a point a few
-    millimetres from the body scans the one to four cells within that distance instead of 27: a
-    third of the time on a walking t-shirt and half on a draped sheet. A hint that is not a
-    filed triangle (`mask`) is ignored, and the result does not depend on the hints, except
-    between equally near triangles. `serialize` on serial backends (see copy_in)."""
+    passes its grid of the end boxes, which fills about half the cells that the solver's boxes
+    swept over the frame do. Two hints per point (a triangle, or -1) only start the search:
+    `hint` (the depth QA passes the solver's tracked triangles) and `last`, the closest triangle
+    of the previous call, which the call then overwrites (the cloth that the solver does not
+    track, within a cell of the body, moves less than a cell a frame). The nearer one bounds the
+    search, so that a point a few millimetres from the body scans the one to four cells within
+    that distance instead of 27: a third of the time on a walking t-shirt and half on a draped
+    sheet. A hint that is not a filed triangle (`mask`) is ignored, and the result does not
+    depend on the hints, except between equally near triangles. `serialize` on serial backends
+    (see copy_in)."""
     ti.loop_config(serialize=serialize)
     for i in range(x.shape[0]):
         p = x[i]

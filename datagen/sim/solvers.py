@@ -649,7 +649,7 @@ class XPBDSolver(ClothSolver):
                   c.bs0, c.bs1, c.ns1, True)
         self._run("body_collision", K.nearest_untracked, self.x, self.w, c.bs1, c.faces,
                   c.origin, c.inv_cell, c.dims, c.starts, c.items, c.cell, self.tri,
-                  self.guard, self.odo, c.max_speed, c.grid_tag, s1, VEC3(*c.shift_np), c.tbox,
+                  self.guard, self.odo, c.max_speed, c.grid_tag, s1, c.shift, c.tbox,
                   c.fold_nd, 0)
         self._run("body_collision", K.collide_body, self.x, self.xp, self.w, self.tri, c.faces,
                   c.fadj, c.bs0, c.bs1, c.ns1, c.ns1, s0, s1, self.thickness, self.friction,
