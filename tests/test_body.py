@@ -535,3 +535,38 @@ def test_anny_cache_folders_the_process_cannot_write_or_create(tmp_path, monkeyp
     (tmp_path / "a_file").write_text("")
     with pytest.raises(InputError, match="ANNY_CACHE_DIR.*a folder this process can create"):
         anny_model._build_lock(tmp_path / "a_file" / "anny")
+
+
+def test_anny_cache_files_are_readable_as_the_umask_allows(tmp_path, body_model):
+    """Anny writes its cache files readable by their owner alone (0600); a cache built to be
+    shared read-only (a cluster's) must be readable by the others the umask lets read: the
+    files this process owns gain the read bits the umask allows, and nothing else changes."""
+    import os
+    import stat
+
+    from anny.paths import get_anny_cache_path
+
+    from datagen.body.anny_model import share_cache_files
+
+    cache = tmp_path / "cache"
+    (cache / "v1").mkdir(parents=True)
+    data = cache / "v1" / "load_data.safetensors"
+    data.write_bytes(b"x")
+    data.chmod(0o600)
+    script = cache / "tool.sh"
+    script.write_bytes(b"x")
+    script.chmod(0o700)
+    umask = os.umask(0o027)
+    try:
+        share_cache_files(cache)
+    finally:
+        os.umask(umask)
+    assert stat.S_IMODE(data.stat().st_mode) == 0o640
+    assert stat.S_IMODE(script.stat().st_mode) == 0o740  # read bits only: no execute, no write
+    # The session's real cache, built (or read) by the model this suite uses.
+    readable = 0o444 & ~umask
+    files = [p for p in get_anny_cache_path().rglob("*.safetensors")
+             if p.stat().st_uid == os.getuid()]
+    assert files, "the session's Anny cache holds no data files"
+    for path in files:
+        assert path.stat().st_mode & readable == readable, path

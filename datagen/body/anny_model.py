@@ -142,8 +142,27 @@ def _anny_model():
 
     # Anny checks for its cache file and then writes it in place, without a lock: a second
     # process starting meanwhile would build it again over the first's or read it half-written.
-    with _MODEL_LOCK, _build_lock(get_anny_cache_path()):
-        return anny.Anny(topology=ANNY_TOPOLOGY, skinning_method="lbs")
+    cache = get_anny_cache_path()
+    with _MODEL_LOCK, _build_lock(cache):
+        model = anny.Anny(topology=ANNY_TOPOLOGY, skinning_method="lbs")
+        share_cache_files(cache)
+        return model
+
+
+def share_cache_files(cache: Path) -> None:
+    """Give the cache files this process owns the read permissions its umask allows new files.
+    Anny writes them readable by their owner alone (mode 0600), so a cache built to be shared
+    (a cluster's, built beforehand and read by other accounts) could be read by nobody else.
+    Only read bits are added; files of other owners are left as they are."""
+    if not os.access(cache, os.W_OK):
+        return
+    umask = os.umask(0o022)  # the only way to read it; put back at once (callers hold a lock)
+    os.umask(umask)
+    readable = 0o444 & ~umask
+    for path in cache.rglob("*"):
+        info = path.stat()
+        if path.is_file() and info.st_uid == os.getuid() and info.st_mode & readable != readable:
+            path.chmod(info.st_mode | readable)
 
 
 def _build_lock(cache: Path) -> contextlib.AbstractContextManager:
