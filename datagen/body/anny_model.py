@@ -153,15 +153,15 @@ def share_cache_files(cache: Path) -> None:
     """Give the cache files this process owns the read permissions its umask allows new files.
     Anny writes them readable by their owner alone (mode 0600), so a cache built to be shared
     (a cluster's, built beforehand and read by other accounts) could be read by nobody else.
-    Only read bits are added; files of other owners are left as they are."""
-    if not os.access(cache, os.W_OK):
-        return
+    Only read bits are added; files of other owners (a shared cache's) are left as they are."""
     umask = os.umask(0o022)  # the only way to read it; put back at once (callers hold a lock)
     os.umask(umask)
     readable = 0o444 & ~umask
     for path in cache.rglob("*"):
+        if not path.is_file():
+            continue
         info = path.stat()
-        if path.is_file() and info.st_uid == os.getuid() and info.st_mode & readable != readable:
+        if info.st_uid == os.getuid() and info.st_mode & readable != readable:
             path.chmod(info.st_mode | readable)
 
 
