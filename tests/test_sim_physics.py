@@ -1043,8 +1043,9 @@ def test_coloured_sweeps_on_two_threads_equal_one_thread_and_stay_physical(tmp_p
     """Where Taichi runs parallel loops (a GPU, or DATAGEN_TI_THREADS > 1) the xpbd sweeps are
     coloured Gauss-Seidel, one parallel loop per colour of constraints sharing no vertex, and
     the presets double substeps and iterations (PARALLEL_QUALITY_PRESETS: 40x8 by default).
-    Run on two threads the path must give the one-thread coloured result bit for bit (a race in
-    any of its kernels would show), and the physics must hold: the leather sheet swinging from
+    Run on two threads the path must give the one-thread coloured result bit for bit over each
+    scene's first frames (a race in any of its kernels would show; the full runs are one
+    thread's, to keep the test short), and the physics must hold: the leather sheet swinging from
     one edge (as above) follows the implicit solver at 40 substeps 11.2 mm RMS away (measured;
     the serial 20x4 7.9 mm; that implicit run is not converged, so this checks the swing, and
     the peer scenes measure convergence: docs/simulator.md), its strain within leather's
@@ -1083,8 +1084,13 @@ def test_coloured_sweeps_on_two_threads_equal_one_thread_and_stay_physical(tmp_p
     assert not bool(runs["coloured"]["serial"])
     assert runs["serial"]["steps"].tolist() == [20, 4]
     assert runs["threads"]["steps"].tolist() == [40, 8]
+    # The two-thread run repeats each scene's first frames (parallel_sweeps.THREADS_FRAMES):
+    # the physics below is asserted on the one-thread coloured run, which it must equal.
     for key in ("sheet", "tube", "layers", "explicit"):
-        assert np.array_equal(runs["coloured"][key], runs["threads"][key]), key
+        prefix = runs["threads"][key]
+        assert 0 < len(prefix) <= len(runs["coloured"][key]), key
+        assert np.array_equal(runs["coloured"][key][: len(prefix)], prefix), key
+    assert len(runs["threads"]["sheet"]) < len(runs["coloured"]["sheet"])
     # A batch on the coloured path (datagen.sim.batch): the greedy colouring of the joined
     # scenes gives each scene its own colours, so every scene is bit for bit its solo run at the
     # batch's place (tests/test_sim_batch.py checks the serial path).
@@ -1109,9 +1115,9 @@ def test_coloured_sweeps_on_two_threads_equal_one_thread_and_stay_physical(tmp_p
         return 1000 * np.sqrt(np.mean(np.sum((x - ref) ** 2, axis=2)))
 
     assert error_mm(runs["serial"]["sheet"]) < 9.0
-    assert error_mm(runs["threads"]["sheet"]) < 13.0
-    assert runs["threads"]["sheet_strain"].max() < FABRICS["leather"].max_strain
-    tube = runs["threads"]
+    assert error_mm(runs["coloured"]["sheet"]) < 13.0
+    assert runs["coloured"]["sheet_strain"].max() < FABRICS["leather"].max_strain
+    tube = runs["coloured"]
     assert np.isfinite(tube["tube"]).all()
     assert tube["tube_strain"].max() < FABRICS["cotton"].max_strain
     assert tube["tube_deep"].max() <= 0.01
@@ -1119,7 +1125,7 @@ def test_coloured_sweeps_on_two_threads_equal_one_thread_and_stay_physical(tmp_p
     # its vertices inside the inner surface in any frame, serial or coloured (measured; 12-30 %
     # without garment-garment collision).
     assert "garment_collision" in tube["layers_effects"].tolist()
-    for mode in ("serial", "threads"):
+    for mode in ("serial", "coloured"):
         assert _share_inside_inner(runs[mode]["layers"], runs[mode]["layers_faces"]) <= 0.005
 
 
