@@ -10,7 +10,8 @@ OUT ?= data
 # variants they compile, 20-30 s each for the body-collision frame kernel, and a worker cannot
 # load what the other compiled until it exits (Taichi writes its offline cache then). On a
 # fresh machine (2026-11-30): 19.7 min by file against 21.9 by test; with the kernels cached,
-# 15.1 by test against 26.6 in one process.
+# 15.1 by test against 26.6 in one process. A fresh clone on an AMD EPYC with no kernels
+# cached (2026-12-03): 16.5 min by file, 18.0 with the install.
 TEST_WORKERS ?= auto
 
 .PHONY: install dataset test lint bench bench-quick clean
