@@ -8,7 +8,7 @@ did not make it is listed with its reason.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,9 +42,12 @@ class Breach:
 
 
 def buried_share(cloth: np.ndarray, thickness: np.ndarray, body: np.ndarray,
-                 faces: np.ndarray) -> np.ndarray:
+                 faces: np.ndarray, garments: Sequence[tuple[int, int]] | None = None
+                 ) -> np.ndarray:
     """(F,) per frame, the share of cloth vertices inside the body's volume and farther than
-    their fabric's thickness from every body triangle.
+    their fabric's thickness from every body triangle: in the garment that has the most where
+    `garments` gives each garment's vertices lo:hi (the bound holds per garment, as the
+    simulator's series do), else among all of them.
 
     The simulator's deep_share signs each vertex by its nearest body triangle, which cannot see
     cloth inside a part that passes through another: where a flexed thigh rises through the
@@ -66,13 +69,18 @@ def buried_share(cloth: np.ndarray, thickness: np.ndarray, body: np.ndarray,
     if cloth.shape[0] != body.shape[0] or cloth.shape[1] != thickness.shape[0]:
         raise ValueError(f"buried_share: cloth {cloth.shape}, thickness {thickness.shape} and "
                          f"body {body.shape} must have matching frames and vertices")
+    groups = [(0, cloth.shape[1])] if garments is None else list(garments)
+    if not groups or any(not 0 <= lo < hi <= cloth.shape[1] for lo, hi in groups):
+        raise ValueError(f"buried_share: garments {groups} must be non-empty vertex ranges "
+                         f"within the cloth's {cloth.shape[1]} vertices")
     tris = np.ascontiguousarray(faces, dtype=np.int64)
     out = np.zeros(cloth.shape[0])
     for f in range(cloth.shape[0]):
         sd, *_ = igl.signed_distance(np.ascontiguousarray(cloth[f], dtype=np.float64),
                                      np.ascontiguousarray(body[f], dtype=np.float64), tris,
                                      sign_type=igl.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER)
-        out[f] = np.mean(sd < -thickness)
+        deep = sd < -thickness
+        out[f] = max(float(np.mean(deep[lo:hi])) for lo, hi in groups)
     return out
 
 

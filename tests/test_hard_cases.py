@@ -95,5 +95,11 @@ def test_buried_share_sees_cloth_inside_a_part_that_passes_through_another():
     frames = np.stack([points, points])
     moved = np.stack([body, body + [0.0, 0.0, 10.0]])
     assert buried_share(frames, thickness, moved, faces).tolist() == [0.5, 0.0]
+    # Per garment, the one with the most: the first point alone (all of it buried) and the
+    # other three (a third), where all four together read a half.
+    assert buried_share(frames, thickness, moved, faces, [(0, 1), (1, 4)]).tolist() == [1.0, 0.0]
+    assert buried_share(frames, thickness, moved, faces, [(0, 2), (2, 4)]).tolist() == [0.5, 0.0]
     with pytest.raises(ValueError, match="matching frames"):
         buried_share(frames, thickness[:2], moved, faces)
+    with pytest.raises(ValueError, match="within the cloth's 4 vertices"):
+        buried_share(frames, thickness, moved, faces, [(0, 2), (2, 5)])

@@ -703,6 +703,28 @@ def test_a_tight_sleeve_slides_on_a_lengthening_limb_instead_of_stretching_past_
     assert result.qa["deep_share"][1:].max() == 0.0
 
 
+def test_qa_bounds_hold_per_garment_not_per_outfit():
+    """The QA's depth and strain series read the garment that has the most, not the outfit's
+    average: a sleeve 8 % narrower than its limb (all of it 4.4 mm inside, deeper than cotton's
+    thickness) under a coat twice its vertices, whose rest shape is 1/1.3 of its start (every
+    fabric spring at strain 0.3, over cotton's 0.25). At frame 0, before any step, the sleeve
+    is all too deep and the coat all over its bound: 1.0 each, where the outfit's shares would
+    be a third and about two thirds."""
+    from datagen.sim.scenes import cylinder_mesh, tube
+
+    radius = 0.06
+    cv, cf = cylinder_mesh(radius, 0.5, sections=48, rings=40)
+    track = ColliderTrack(np.repeat(cv[None], 2, axis=0), cf, np.ones(len(cf), bool))
+    sleeve = tube(radius / 1.08, 0.3, 40, 30, top=0.4, name="sleeve")
+    coat = tube(2 * radius, 0.3, 80, 30, top=0.4, name="coat")
+    centre = coat.vertices.mean(axis=0)
+    coat = replace(coat, rest_vertices=centre + (coat.vertices - centre) / 1.3)
+    result = simulate([sleeve, coat], track, SimOptions(settle_seconds=0.0, strain_refinements=0))
+    assert len(coat.vertices) == 2 * len(sleeve.vertices)
+    assert result.qa["deep_share"][0] == 1.0
+    assert result.qa["over_strain_share"][0] == 1.0
+
+
 def test_tethers_are_the_strain_limits_shortest_path_to_a_pin():
     """A sheet pinned along one edge: each vertex's tether goes to the pin in its own row, and
     its length is the straight distance along the row times 1 + the limit (0.9 x 0.25 for

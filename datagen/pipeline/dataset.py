@@ -260,8 +260,8 @@ def write_card(out: Path, loaded: LoadedRecipe, rows: list[dict], wall: float | 
         + (f"; this run took {wall / 60:.1f} min on {workers} worker(s), "
            f"{len(rows) / max(wall, 1e-9) * 3600:.0f} sequences per hour" if wall else ""),
         f"- QA over all frames: worst 99.9th-percentile strain {qa_strain:.3f}, worst share of "
-        f"springs beyond their fabric's max_strain {qa_over:.4f}, worst share of vertices "
-        f"deeper than the fabric thickness in the body {qa_deep:.4f}",
+        f"a garment's springs beyond their fabric's max_strain {qa_over:.4f}, worst share of a "
+        f"garment's vertices deeper than the fabric thickness in the body {qa_deep:.4f}",
         f"- simulated again one quality preset up after a first run broke a bound or went "
         f"unstable: {sum(1 for r in ok if r.get('escalated'))} of the finished",
         "",

@@ -1,8 +1,9 @@
 """The simulator's hard cases (pipelines/hard_cases.yaml): scenes a dataset run will meet sooner
 or later, each run through the real pipeline and judged.
 
-A case passes when it ends finite, with at most 0.1 % of fabric edges beyond the fabric's strain
-bound and at most 1 % of garment vertices deeper than the thickness in every output frame, and a
+A case passes when it ends finite, with at most 0.1 % of each garment's fabric edges beyond the
+fabric's strain bound and at most 1 % of each garment's vertices deeper than the thickness in
+every output frame, and a
 bounded kinetic energy; or, where the case says rejection is the right answer, when it is
 rejected at the expected stage with a reason that says so. Tests run the short versions
 (`short` frames), the benchmark the full ones.

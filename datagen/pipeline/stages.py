@@ -233,9 +233,9 @@ def over_qa_bounds(record: SequenceRecord,
 
 def record_buried_share(record: SequenceRecord, frames: np.ndarray | None = None,
                         fabrics: Mapping[str, Fabric] | None = None) -> np.ndarray:
-    """qa.buried_share of a finished record at the given output frames (default: all): every
-    garment's vertices, each held to its fabric's thickness, against the whole body (all its
-    triangles, the parts the collider leaves out included)."""
+    """qa.buried_share of a finished record at the given output frames (default: all), in the
+    garment with the most: every garment's vertices, each held to its fabric's thickness,
+    against the whole body (all its triangles, the parts the collider leaves out included)."""
     from datagen import qa
     from datagen.sim.fabrics import get_fabric
 
@@ -246,8 +246,9 @@ def record_buried_share(record: SequenceRecord, frames: np.ndarray | None = None
     extra = dict(fabrics or {})
     thickness = np.concatenate([np.full(len(g.vertices), get_fabric(g.fabric, extra).thickness)
                                 for g in record.garments])
+    ends = np.cumsum([len(g.vertices) for g in record.garments]).tolist()
     return qa.buried_share(cloth, thickness, body.vertices[body.lead_in_frames + out],
-                           body.rest.faces)
+                           body.rest.faces, list(zip([0, *ends[:-1]], ends, strict=True)))
 
 
 def buried_at_flexed_joints(record: SequenceRecord,
