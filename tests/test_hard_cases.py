@@ -1,8 +1,9 @@
 """The simulator's hard cases (pipelines/hard_cases.yaml), short versions, at default settings.
 
-Every case must end finite, with no more than 1 % of vertices deeper than the thickness in any
-frame and a bounded kinetic energy, or be rejected for the reason the case expects. The strain
-criterion (at most 0.1 % of fabric edges beyond the fabric's bound) holds as well.
+Every case must end finite, with no more than 1 % of any garment's vertices deeper than the
+thickness in any frame and a bounded kinetic energy, or be rejected for the reason the case
+expects. The strain criterion (at most 0.1 % of a garment's fabric edges beyond the fabric's
+bound) holds as well.
 """
 
 from __future__ import annotations

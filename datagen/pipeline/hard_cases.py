@@ -230,14 +230,16 @@ def judge(case: Case, record) -> CaseResult:
     if not finite:
         problems.append("non-finite positions")
     if res.strain_share_max > STRAIN_SHARE_MAX:
-        problems.append(f"{100 * res.strain_share_max:.2f} % of edges beyond the strain bound")
+        problems.append(f"{100 * res.strain_share_max:.2f} % of a garment's edges beyond the "
+                        "strain bound")
         worst.append(int(np.argmax(qa["over_strain_share"])))
     if res.deep_share_max > DEEP_SHARE_MAX:
-        problems.append(f"{100 * res.deep_share_max:.2f} % of vertices deeper than the thickness")
+        problems.append(f"{100 * res.deep_share_max:.2f} % of a garment's vertices deeper than "
+                        "the thickness")
         worst.append(int(np.argmax(qa["deep_share"])))
     if res.buried_share_max > DEEP_SHARE_MAX:
-        problems.append(f"{100 * res.buried_share_max:.2f} % of vertices deeper than the "
-                        "thickness inside the body's volume (its parts' union)")
+        problems.append(f"{100 * res.buried_share_max:.2f} % of a garment's vertices deeper "
+                        "than the thickness inside the body's volume (its parts' union)")
         worst.append(int(np.argmax(buried)))
     if res.kinetic_per_kg_max > KINETIC_PER_KG_MAX:
         problems.append(f"kinetic energy {res.kinetic_per_kg_max:.1f} J/kg")
