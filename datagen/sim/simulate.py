@@ -268,10 +268,10 @@ def _first_vertex_within(first_vertex: np.ndarray, lo: int, hi: int) -> np.ndarr
     return np.flatnonzero((first_vertex >= lo) & (first_vertex < hi))
 
 
-def _garments_within(model: ClothModel, lo: int,
-                     hi: int) -> tuple[tuple[int, int, np.ndarray], ...]:
-    """Each garment in the vertices lo:hi: its range and its fabric springs."""
-    first = model.springs[model.fabric_springs][:, 0]
+def _garments_within(model: ClothModel, lo: int, hi: int,
+                     first: np.ndarray) -> tuple[tuple[int, int, np.ndarray], ...]:
+    """Each garment in the vertices lo:hi: its range and its fabric springs (`first`: each
+    fabric spring's first vertex)."""
     return tuple((g0, g1, _first_vertex_within(first, g0, g1))
                  for g0, g1 in model.garment_ranges if lo <= g0 and g1 <= hi)
 
@@ -301,16 +301,18 @@ class _Part:
     @staticmethod
     def whole(model: ClothModel) -> _Part:
         everything = slice(None)
+        first = model.springs[model.fabric_springs][:, 0]
         return _Part(0, model.n_vertices, everything, everything, everything,
-                     float(model.mass.sum()), _garments_within(model, 0, model.n_vertices))
+                     float(model.mass.sum()), _garments_within(model, 0, model.n_vertices, first))
 
     @staticmethod
     def of(model: ClothModel, lo: int, hi: int, body: slice, label: str) -> _Part:
-        fabric = _first_vertex_within(model.springs[model.fabric_springs][:, 0], lo, hi)
-        return _Part(lo, hi, fabric, _first_vertex_within(model.springs[:, 0], lo, hi),
+        first = model.springs[model.fabric_springs][:, 0]
+        return _Part(lo, hi, _first_vertex_within(first, lo, hi),
+                     _first_vertex_within(model.springs[:, 0], lo, hi),
                      _first_vertex_within(model.bends[:, 0], lo, hi),
-                     float(model.mass[lo:hi].sum()), _garments_within(model, lo, hi), body,
-                     label)
+                     float(model.mass[lo:hi].sum()), _garments_within(model, lo, hi, first),
+                     body, label)
 
     def over_strain_share(self, over: np.ndarray) -> float:
         """The largest share of a garment's fabric springs beyond their bound (`over`, as
@@ -325,8 +327,11 @@ class _Part:
         return kinetic_energy(model, v, self.lo, self.hi)
 
 
-def _qa(model: ClothModel, part: _Part, v: np.ndarray, sd: np.ndarray | None,
+def _qa(model: ClothModel, part: _Part, v: np.ndarray,
+        inside_deep: tuple[np.ndarray, np.ndarray] | None,
         fabric_strain: tuple[np.ndarray, np.ndarray]) -> dict:
+    """One frame's QA values of a part; `inside_deep` flags every vertex inside the body and
+    deeper than its thickness (None: no body), `fabric_strain` is _fabric_strain's."""
     strain = fabric_strain[0][part.fabric]
     out = {
         "strain_mean": float(np.mean(np.abs(strain))),
@@ -335,9 +340,9 @@ def _qa(model: ClothModel, part: _Part, v: np.ndarray, sd: np.ndarray | None,
         "over_strain_share": part.over_strain_share(fabric_strain[1]),
         "kinetic_energy": part.kinetic_energy(model, v),
     }
-    if sd is not None:
-        out["inside_share"] = part.deep_share(sd < 0.0)
-        out["deep_share"] = part.deep_share(sd < -model.thickness)
+    if inside_deep is not None:
+        out["inside_share"] = part.deep_share(inside_deep[0])
+        out["deep_share"] = part.deep_share(inside_deep[1])
     else:
         out["inside_share"] = out["deep_share"] = 0.0
     return out
@@ -708,7 +713,8 @@ class _Simulation:
             # The solver's tracked triangles only bound the search (it finds the nearest).
             sd = self.collider.signed_distance(x, hint=self.solver.tri)
         strain = self._strain(x)
-        qa_rows.append([_qa(self.model, p, v, sd, strain) for p in self.parts])
+        flags = None if sd is None else (sd < 0.0, sd < -self.model.thickness)
+        qa_rows.append([_qa(self.model, p, v, flags, strain) for p in self.parts])
 
     def _result(self, outputs, qa_rows, setup: float, frames: float, settle) -> SimResult:
         costs: dict[str, float] = {}
