@@ -119,13 +119,10 @@ class FlexionSeparator:
             pv = v[np.concatenate([partner_vertices[j] for j in folding])]
             lo, hi = pv.min(axis=0) - gap, pv.max(axis=0) + gap
             candidates.append(own[np.all((v[own] >= lo) & (v[own] <= hi), axis=1)])
-        union = np.unique(np.concatenate(candidates))
-        if len(union) == 0:
-            return c
-        winding = np.zeros(len(v))
-        winding[union] = igl.fast_winding_number(v, self.faces, v[union] + _PROBE_OUT * vn[union])
         reach = _MAX_DEPTH + gap
         centroids = v[self.faces].mean(axis=1)
+        measured = []  # per group: its candidates, their distances, nearest triangles and the
+        # normals there, and which of those triangles are a partner's
         for (_, foreign, _), partners, sel in zip(self.groups, active, candidates, strict=True):
             if len(sel) == 0:
                 continue
@@ -138,7 +135,19 @@ class FlexionSeparator:
             sd, idx, _, normal = igl.signed_distance(
                 p, v, self.faces[tris], sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
             hit = tris[idx]
-            to_partner = np.isin(self.tri_part[hit], partners)
+            measured.append((sel, sd, hit, normal, np.isin(self.tri_part[hit], partners)))
+        # The winding number decides only what the distance puts behind a partner's surface: it
+        # is read at those vertices alone, and not at all where there are none. Each point's
+        # value is the same whichever others are asked (the tree is the mesh's), and building
+        # that tree is most of the call's time.
+        winding = np.zeros(len(v))
+        behind = [sel[to_partner & (sd < 0) & (sd > -_MAX_DEPTH)]
+                  for sel, sd, _, _, to_partner in measured]
+        queried = np.unique(np.concatenate(behind)) if behind else np.zeros(0, np.int64)
+        if len(queried):
+            winding[queried] = igl.fast_winding_number(
+                v, self.faces, v[queried] + _PROBE_OUT * vn[queried])
+        for sel, sd, hit, normal, to_partner in measured:
             inside = to_partner & (winding[sel] > 0.5) & (sd < 0) & (sd > -_MAX_DEPTH)
             # Within the gap counts only where the two were apart at rest: next to the joint
             # they are one skin.

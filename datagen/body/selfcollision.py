@@ -34,6 +34,7 @@ from datagen.body.parts import (
 
 LOCAL_RADIUS = 0.05  # metres: triangles this close in the rest pose may fold into each other
 _FRAME_SHIFT = 100.0  # metres between frames in the batched KD-tree
+_BOX_FRAMES = 16  # frames whose triangle corners are gathered at once for their boxes
 
 
 @dataclass
@@ -102,78 +103,103 @@ class SelfCollisionDetector:
     def detect(self, vertices: np.ndarray, frames: np.ndarray | None = None) -> list[Contact]:
         """Contacts in posed vertices (F, V, 3); `frames` labels them (default 0..F-1)."""
         vertices = np.asarray(vertices)
-        n_frames = vertices.shape[0]
-        frame_ids = np.arange(n_frames) if frames is None else np.asarray(frames)
-        tri = vertices[:, self.faces].astype(np.float64)  # (F, T, 3, 3)
-        tmin = tri.min(axis=2)
-        tmax = tri.max(axis=2)
-        # Per-part boxes per frame, once (the pair loop below only compares them).
-        pmin = np.stack(
-            [
-                tmin[:, t].min(axis=1) if len(t) else np.full((n_frames, 3), np.inf)
-                for t in self.part_tris
-            ],
-            axis=1,
-        )
-        pmax = np.stack(
-            [
-                tmax[:, t].max(axis=1) if len(t) else np.full((n_frames, 3), -np.inf)
-                for t in self.part_tris
-            ],
-            axis=1,
-        )
+        frame_ids = np.arange(vertices.shape[0]) if frames is None else np.asarray(frames)
         contacts: list[Contact] = []
-        for a, b in self.pairs:
-            ta, tb = self.part_tris[a], self.part_tris[b]
-            lo = np.maximum(pmin[:, a], pmin[:, b])
-            hi = np.minimum(pmax[:, a], pmax[:, b])
-            overlap = np.all(lo <= hi, axis=1)
-            if not overlap.any():
-                continue
-            fr = np.flatnonzero(overlap)
-            # Triangles of each part whose box touches the overlap box, per frame (indexing the
-            # part's triangles first: copying all triangles per pair would dominate the cost).
-            fi = fr[:, None]
-            lo_f, hi_f = lo[fr, None], hi[fr, None]
-            sel_a = np.all((tmax[fi, ta[None]] >= lo_f) & (tmin[fi, ta[None]] <= hi_f), axis=2)
-            sel_b = np.all((tmax[fi, tb[None]] >= lo_f) & (tmin[fi, tb[None]] <= hi_f), axis=2)
-            fa, ia = np.nonzero(sel_a)
-            fb, ib = np.nonzero(sel_b)
-            if len(fa) == 0 or len(fb) == 0:
-                continue
-            pairs = self._candidate_pairs(tri, fr[fa], ta[ia], fr[fb], tb[ib])
+        for (a, b), (fa, ia, fb, ib) in self._broad_phase(vertices).items():
+            pairs = self._candidate_pairs(vertices, fa, ia, fb, ib)
             if len(pairs) == 0:
                 continue
             pf, pa, pb = pairs.T
-            hit = triangles_intersect(tri[pf, pa], tri[pf, pb])
+            hit = triangles_intersect(self._corners(vertices, pf, pa),
+                                      self._corners(vertices, pf, pb))
             if not hit.any():
                 continue
             pf, pa, pb = pf[hit], pa[hit], pb[hit]
             for f in np.unique(pf):
                 m = pf == f
-                contacts.append(self._contact(tri[f], int(frame_ids[f]), a, b, pa[m], pb[m]))
+                tri_f = vertices[f][self.faces].astype(np.float64)
+                contacts.append(self._contact(tri_f, int(frame_ids[f]), a, b, pa[m], pb[m]))
         contacts.sort(key=lambda c: (c.frame, c.part_a, c.part_b))
         return contacts
 
-    def _candidate_pairs(self, tri, fa, ia, fb, ib) -> np.ndarray:
+    def _broad_phase(self, vertices: np.ndarray) -> dict[tuple[int, int], tuple[np.ndarray, ...]]:
+        """Per part pair, the (frame, triangle) rows of each part whose box touches the overlap
+        of the two parts' boxes in that frame: (frames a, triangles a, frames b, triangles b),
+        by frame. A few frames at a time, into buffers reused from chunk to chunk: the whole
+        sequence's triangle boxes at once (and before that its corners in float64, 0.6 GB for
+        300 frames of the 27k-triangle body) spent most of the body stage's time on the first
+        touch of freshly allocated pages, three calls a sequence."""
+        n_tris = len(self.faces)
+        corner = [np.empty((_BOX_FRAMES, n_tris, 3), vertices.dtype) for _ in range(3)]
+        tmin = np.empty((_BOX_FRAMES, n_tris, 3), vertices.dtype)
+        tmax = np.empty((_BOX_FRAMES, n_tris, 3), vertices.dtype)
+        rows: dict[tuple[int, int], list[tuple[np.ndarray, ...]]] = {}
+        for f0 in range(0, vertices.shape[0], _BOX_FRAMES):
+            chunk = vertices[f0:f0 + _BOX_FRAMES]
+            n = len(chunk)
+            a_, b_, c_ = (np.take(chunk, self.faces[:, k], axis=1, out=corner[k][:n])
+                          for k in range(3))
+            # Corner by corner, elementwise: a reduction over the corner axis (length 3) runs
+            # numpy's inner loop three elements at a time, ten times slower.
+            lo_t = np.minimum(np.minimum(a_, b_, out=tmin[:n]), c_, out=tmin[:n])
+            hi_t = np.maximum(np.maximum(a_, b_, out=tmax[:n]), c_, out=tmax[:n])
+            # Per-part boxes per frame, once (the pair loop below only compares them).
+            pmin = np.stack([lo_t[:, t].min(axis=1) if len(t) else np.full((n, 3), np.inf)
+                             for t in self.part_tris], axis=1)
+            pmax = np.stack([hi_t[:, t].max(axis=1) if len(t) else np.full((n, 3), -np.inf)
+                             for t in self.part_tris], axis=1)
+            for a, b in self.pairs:
+                ta, tb = self.part_tris[a], self.part_tris[b]
+                lo = np.maximum(pmin[:, a], pmin[:, b])
+                hi = np.minimum(pmax[:, a], pmax[:, b])
+                fr = np.flatnonzero(np.all(lo <= hi, axis=1))
+                if len(fr) == 0:
+                    continue
+                # Triangles of each part whose box touches the overlap box, per frame
+                # (indexing the part's triangles first: copying all triangles per pair would
+                # dominate the cost).
+                fi = fr[:, None]
+                lo_f, hi_f = lo[fr, None], hi[fr, None]
+                sel_a = np.all((hi_t[fi, ta[None]] >= lo_f) & (lo_t[fi, ta[None]] <= hi_f),
+                               axis=2)
+                sel_b = np.all((hi_t[fi, tb[None]] >= lo_f) & (lo_t[fi, tb[None]] <= hi_f),
+                               axis=2)
+                fa, ia = np.nonzero(sel_a)
+                fb, ib = np.nonzero(sel_b)
+                if len(fa) and len(fb):
+                    rows.setdefault((a, b), []).append(
+                        (f0 + fr[fa], ta[ia], f0 + fr[fb], tb[ib]))
+        return {pair: tuple(np.concatenate(col) for col in zip(*found, strict=True))
+                for pair, found in rows.items()}
+
+    def _corners(self, vertices: np.ndarray, f: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(N, 3, 3) float64 corners of triangles t in frames f: only the candidates' are
+        converted (the tests below are in float64)."""
+        return vertices[f[:, None], self.faces[t]].astype(np.float64)
+
+    def _candidate_pairs(self, vertices, fa, ia, fb, ib) -> np.ndarray:
         """(N, 3) rows (frame, tri_a, tri_b) whose bounding spheres overlap and that were apart
         in the rest pose."""
-        ca = tri[fa, ia].mean(axis=1)
-        cb = tri[fb, ib].mean(axis=1)
-        ra = np.linalg.norm(tri[fa, ia] - ca[:, None], axis=2).max(axis=1)
-        rb = np.linalg.norm(tri[fb, ib] - cb[:, None], axis=2).max(axis=1)
+        tri_a = self._corners(vertices, fa, ia)
+        tri_b = self._corners(vertices, fb, ib)
+        ca = tri_a.mean(axis=1)
+        cb = tri_b.mean(axis=1)
+        ra = np.linalg.norm(tri_a - ca[:, None], axis=2).max(axis=1)
+        rb = np.linalg.norm(tri_b - cb[:, None], axis=2).max(axis=1)
         shift_a = ca.copy()
         shift_a[:, 0] += fa * _FRAME_SHIFT
         shift_b = cb.copy()
         shift_b[:, 0] += fb * _FRAME_SHIFT
-        tree = cKDTree(shift_b)
         radius = float(ra.max() + rb.max())
-        neighbours = tree.query_ball_point(shift_a, r=radius)
-        counts = np.fromiter((len(n) for n in neighbours), dtype=np.int64, count=len(neighbours))
-        if counts.sum() == 0:
+        # Every pair within `radius`, as arrays (a ball query per point returns Python lists,
+        # most of this function's time), in the order of a's rows, then b's.
+        near = cKDTree(shift_a).sparse_distance_matrix(cKDTree(shift_b), radius,
+                                                       output_type="ndarray")
+        if len(near) == 0:
             return np.empty((0, 3), dtype=np.int64)
-        rows = np.repeat(np.arange(len(neighbours)), counts)
-        cols = np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbours if n])
+        order = np.lexsort((near["j"], near["i"]))
+        rows = near["i"][order].astype(np.int64)
+        cols = near["j"][order].astype(np.int64)
         close = np.linalg.norm(ca[rows] - cb[cols], axis=1) <= ra[rows] + rb[cols]
         rows, cols = rows[close], cols[close]
         far_at_rest = (
