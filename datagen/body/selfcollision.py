@@ -195,11 +195,14 @@ class SelfCollisionDetector:
         # most of this function's time), in the order of a's rows, then b's.
         near = cKDTree(shift_a).sparse_distance_matrix(cKDTree(shift_b), radius,
                                                        output_type="ndarray")
-        if len(near) == 0:
-            return np.empty((0, 3), dtype=np.int64)
-        order = np.lexsort((near["j"], near["i"]))
-        rows = near["i"][order].astype(np.int64)
-        cols = near["j"][order].astype(np.int64)
+        # The tree's own distance (between the frame-shifted centres, off by rounding at a few
+        # 1e-12 m) drops the pairs beyond their own two radii before anything is gathered for
+        # them (19 in 20 of a clip's pairs); the exact test below decides the rest.
+        rows = near["i"].astype(np.int64)
+        cols = near["j"].astype(np.int64)
+        within = near["v"] <= ra[rows] + rb[cols] + 1e-9
+        order = np.lexsort((cols[within], rows[within]))
+        rows, cols = rows[within][order], cols[within][order]
         close = np.linalg.norm(ca[rows] - cb[cols], axis=1) <= ra[rows] + rb[cols]
         rows, cols = rows[close], cols[close]
         far_at_rest = (
