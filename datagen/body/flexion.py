@@ -122,7 +122,8 @@ class FlexionSeparator:
         reach = _MAX_DEPTH + gap
         centroids = v[self.faces].mean(axis=1)
         measured = []  # per group: its candidates, their distances, nearest triangles and the
-        # normals there, and which of those triangles are a partner's
+        # normals there, which of those triangles are a partner's, and which candidates lie
+        # behind a partner's surface (to be confirmed by the winding number)
         for (_, foreign, _), partners, sel in zip(self.groups, active, candidates, strict=True):
             if len(sel) == 0:
                 continue
@@ -135,20 +136,21 @@ class FlexionSeparator:
             sd, idx, _, normal = igl.signed_distance(
                 p, v, self.faces[tris], sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
             hit = tris[idx]
-            measured.append((sel, sd, hit, normal, np.isin(self.tri_part[hit], partners)))
+            to_partner = np.isin(self.tri_part[hit], partners)
+            behind = to_partner & (sd < 0) & (sd > -_MAX_DEPTH)
+            measured.append((sel, sd, hit, normal, to_partner, behind))
         # The winding number decides only what the distance puts behind a partner's surface: it
         # is read at those vertices alone, and not at all where there are none. Each point's
         # value is the same whichever others are asked (the tree is the mesh's), and building
         # that tree is most of the call's time.
         winding = np.zeros(len(v))
-        behind = [sel[to_partner & (sd < 0) & (sd > -_MAX_DEPTH)]
-                  for sel, sd, _, _, to_partner in measured]
-        queried = np.unique(np.concatenate(behind)) if behind else np.zeros(0, np.int64)
+        asked = [sel[behind] for sel, _, _, _, _, behind in measured]
+        queried = np.unique(np.concatenate(asked)) if asked else np.zeros(0, np.int64)
         if len(queried):
             winding[queried] = igl.fast_winding_number(
                 v, self.faces, v[queried] + _PROBE_OUT * vn[queried])
-        for sel, sd, hit, normal, to_partner in measured:
-            inside = to_partner & (winding[sel] > 0.5) & (sd < 0) & (sd > -_MAX_DEPTH)
+        for sel, sd, hit, normal, to_partner, behind in measured:
+            inside = behind & (winding[sel] > 0.5)
             # Within the gap counts only where the two were apart at rest: next to the joint
             # they are one skin.
             apart = np.linalg.norm(self.rest_vertices[sel] - self.rest_centroids[hit],
