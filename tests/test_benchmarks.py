@@ -435,3 +435,16 @@ def test_the_dataset_projection_gives_the_mean_with_its_t_interval_and_the_escal
         run(0, 10.0), run(1, 20.0), rejected]}))
     assert "3: 2 finished, 1 rejected; " in text
     assert "(5,000-10,000 garment vertices)" in text
+
+
+def test_the_choice_at_blenders_error_skips_costlier_settings_and_takes_each_ones_least_time():
+    # 25x2, 30x2, 40x2 and 20x4 do at least 20x2's substeps and iterations.
+    assert bench_sim.undominated([(30, 1), (20, 2), (25, 2), (30, 2), (40, 2), (20, 4)]) == [
+        (30, 1), (20, 2)]
+    # 20x4 has fewer substeps than 30x1 and more iterations: neither undercuts the other.
+    assert bench_sim.undominated([(30, 1), (30, 2), (40, 2), (20, 4)]) == [(30, 1), (20, 4)]
+    assert bench_sim.undominated([(20, 4)]) == [(20, 4)]
+    # One slow run does not decide: 20x2's least time wins although its first run was the slowest.
+    times = {(30, 1): [1.20, 1.18], (20, 2): [1.60, 0.95], (20, 4): [1.10, 1.40]}
+    assert bench_sim.choose_fastest(times) == (20, 2)
+    assert bench_sim.choose_fastest({(30, 1): [1.0], (20, 2): [1.0]}) == (30, 1)
