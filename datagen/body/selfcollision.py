@@ -106,12 +106,11 @@ class SelfCollisionDetector:
         frame_ids = np.arange(vertices.shape[0]) if frames is None else np.asarray(frames)
         contacts: list[Contact] = []
         for (a, b), (fa, ia, fb, ib) in self._broad_phase(vertices).items():
-            pairs = self._candidate_pairs(vertices, fa, ia, fb, ib)
+            pairs, corners_a, corners_b = self._candidate_pairs(vertices, fa, ia, fb, ib)
             if len(pairs) == 0:
                 continue
             pf, pa, pb = pairs.T
-            hit = triangles_intersect(self._corners(vertices, pf, pa),
-                                      self._corners(vertices, pf, pb))
+            hit = triangles_intersect(corners_a, corners_b)
             if not hit.any():
                 continue
             pf, pa, pb = pf[hit], pa[hit], pb[hit]
@@ -177,9 +176,10 @@ class SelfCollisionDetector:
         converted (the tests below are in float64)."""
         return vertices[f[:, None], self.faces[t]].astype(np.float64)
 
-    def _candidate_pairs(self, vertices, fa, ia, fb, ib) -> np.ndarray:
+    def _candidate_pairs(self, vertices, fa, ia, fb, ib) -> tuple[np.ndarray, ...]:
         """(N, 3) rows (frame, tri_a, tri_b) whose bounding spheres overlap and that were apart
-        in the rest pose."""
+        in the rest pose, with the two triangles' (N, 3, 3) float64 corners (gathered here for
+        every candidate, so the exact test reuses them)."""
         tri_a = self._corners(vertices, fa, ia)
         tri_b = self._corners(vertices, fb, ib)
         ca = tri_a.mean(axis=1)
@@ -210,7 +210,7 @@ class SelfCollisionDetector:
             > self.local_radius
         )
         rows, cols = rows[far_at_rest], cols[far_at_rest]
-        return np.stack([fa[rows], ia[rows], ib[cols]], axis=1)
+        return np.stack([fa[rows], ia[rows], ib[cols]], axis=1), tri_a[rows], tri_b[cols]
 
     def _contact(self, tri_f, frame, a, b, pa, pb) -> Contact:
         pts = np.concatenate([tri_f[pa].reshape(-1, 3), tri_f[pb].reshape(-1, 3)])
