@@ -31,3 +31,25 @@ def body_model():
     from datagen.body.anny_model import default_body_model
 
     return default_body_model()
+
+
+def in_ieee_process(request: pytest.FixtureRequest) -> bool:
+    """Run the calling test again in a pytest process of its own whose kernels compile without
+    fast math (DATAGEN_TI_IEEE=1, datagen/sim/backend.py), and return True there once it passed;
+    return False inside that process, where the test runs its body. A test that two code paths
+    compute the same operations asserts it bit for bit there: with fast math, where LLVM fuses
+    a multiply and an add depends on the whole kernel, so the one-launch frame kernel and the
+    per-effect kernels part by a few float32 steps (datagen/sim/backend.py)."""
+    import subprocess
+    import sys
+
+    if os.environ.get("DATAGEN_TI_IEEE", "0") not in ("", "0"):
+        return False
+    env = dict(os.environ, DATAGEN_TI_IEEE="1")
+    done = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist",
+         request.node.nodeid],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=900,
+    )
+    assert done.returncode == 0, (done.stdout + done.stderr)[-4000:]
+    return True

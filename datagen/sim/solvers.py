@@ -640,8 +640,8 @@ class XPBDSolver(ClothSolver):
     def _search_and_collide(self, collider, s0: float, s1: float, h: float) -> None:
         """ClothSolver's; on the serial path computed as the fused frame kernel computes it
         (the body interpolated once per substep, taken at the fractions 0 and 1, the odometer
-        summed in the kernel), so that a profiled frame is an unprofiled one to the last
-        bit."""
+        summed in the kernel), so that a profiled frame computes an unprofiled one operation
+        for operation (to the last bit without fast math: backend.py)."""
         if not self.gauss_seidel:
             return super()._search_and_collide(collider, s0, s1, h)
         c = collider
