@@ -7,11 +7,13 @@ PIPELINE ?= pipelines/default.yaml
 OUT ?= data
 # Test workers (pytest-xdist): the tests are single-threaded, so one per core nearly halves the
 # suite on 2 cores. Whole files go to a worker (loadfile): a file's tests share the Taichi kernel
-# variants they compile, 20-30 s each for the body-collision frame kernel, and a worker cannot
+# variants they compile (20-30 s each for the body-collision frame kernel until 2026-12-03,
+# 2-5 s since Taichi's CFG pass is off: docs/simulator.md, "Compile time"), and a worker cannot
 # load what the other compiled until it exits (Taichi writes its offline cache then). On a
 # fresh machine (2026-11-30): 19.7 min by file against 21.9 by test; with the kernels cached,
 # 15.1 by test against 26.6 in one process. A fresh clone on an AMD EPYC with no kernels
-# cached (2026-12-03): 16.5 min by file, 18.0 with the install.
+# cached (2026-12-03): 16.5 min by file, 18.0 with the install; with the pass off, on a
+# faster EPYC, 9.5 min by file, 10.5 with the install.
 TEST_WORKERS ?= auto
 
 .PHONY: install dataset test lint bench bench-quick clean
