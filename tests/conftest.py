@@ -43,9 +43,11 @@ def in_ieee_process(request: pytest.FixtureRequest) -> bool:
     import subprocess
     import sys
 
-    if os.environ.get("DATAGEN_TI_IEEE", "0") not in ("", "0"):
+    from datagen.sim import backend
+
+    if backend.ieee():
         return False
-    env = dict(os.environ, DATAGEN_TI_IEEE="1")
+    env = dict(os.environ, **{backend.IEEE_ENV: "1"})
     done = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist",
          request.node.nodeid],

@@ -22,6 +22,17 @@ from __future__ import annotations
 import os
 
 _STATE: dict = {}
+IEEE_ENV = "DATAGEN_TI_IEEE"
+
+
+def _flag(name: str) -> bool:
+    """An environment switch: set to anything but "" or "0"."""
+    return os.environ.get(name, "0") not in ("", "0")
+
+
+def ieee() -> bool:
+    """True when this process compiles its kernels without fast math (IEEE_ENV)."""
+    return _flag(IEEE_ENV)
 
 
 def init_taichi(arch: str | None = None, threads: int | None = None) -> None:
@@ -37,11 +48,11 @@ def init_taichi(arch: str | None = None, threads: int | None = None) -> None:
         threads = int(os.environ.get("DATAGEN_TI_THREADS", "1"))
     kwargs = dict(
         offline_cache=True,
-        fast_math=os.environ.get("DATAGEN_TI_IEEE", "0") in ("", "0"),
+        fast_math=not ieee(),
         log_level=ti.ERROR,
         default_fp=REAL,
         random_seed=0,
-        kernel_profiler=os.environ.get("DATAGEN_TI_PROFILER", "0") not in ("", "0"),
+        kernel_profiler=_flag("DATAGEN_TI_PROFILER"),
     )
     if arch == "cpu":
         # Taichi's control-flow-graph pass (store forwarding and dead stores over the whole
