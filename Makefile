@@ -6,14 +6,13 @@ STAMP := $(VENV)/.installed-stamp
 PIPELINE ?= pipelines/default.yaml
 OUT ?= data
 # Test workers (pytest-xdist): the tests are single-threaded, so one per core nearly halves the
-# suite on 2 cores. Whole files go to a worker (loadfile): a file's tests share the Taichi kernel
-# variants they compile (20-30 s each for the body-collision frame kernel until 2026-12-03,
-# 2-5 s since Taichi's CFG pass is off: docs/simulator.md, "Compile time"), and a worker cannot
-# load what the other compiled until it exits (Taichi writes its offline cache then). On a
-# fresh machine (2026-11-30): 19.7 min by file against 21.9 by test; with the kernels cached,
-# 15.1 by test against 26.6 in one process. A fresh clone on an AMD EPYC with no kernels
-# cached (2026-12-03): 16.5 min by file, 18.0 with the install; with the pass off, on a
-# faster EPYC, 9.5 min by file, 10.5 with the install.
+# suite on 2 cores. Tests go to whichever worker is free (load). Until 2026-12-04 whole files
+# did (loadfile), so that a file's tests shared the Taichi kernel variants they compile (20-30 s
+# each for the body-collision frame kernel then; a worker cannot load what the other compiled
+# until it exits, when Taichi writes its offline cache). Since Taichi's CFG pass is off those
+# compile in 2-5 s (docs/simulator.md, "Compile time"), and balancing by test pays more: with no
+# kernels cached, one after the other on an AMD EPYC (2026-12-04), 10.3 min by test against
+# 11.4 by file (on 2026-11-30, with the slow compiles, 21.9 by test against 19.7 by file).
 TEST_WORKERS ?= auto
 
 .PHONY: install dataset test lint bench bench-quick clean
@@ -41,7 +40,7 @@ lint: install
 	$(VENV)/bin/ruff check datagen models tests benchmarks templates
 
 test: lint
-	$(VENV)/bin/pytest -q -n $(TEST_WORKERS) --dist loadfile
+	$(VENV)/bin/pytest -q -n $(TEST_WORKERS) --dist load
 
 bench: install
 	$(PY) -m benchmarks.run_all
