@@ -9,6 +9,7 @@ from pathlib import Path
 
 import click
 
+from datagen.cli_paths import preview_path, shard_path
 from datagen.errors import user_errors
 
 
@@ -187,7 +188,8 @@ def body_model_from_options(name: str, smpl_model: str | None):
     is_flag=True,
     help="Store posed body vertices instead of skinning data (larger).",
 )
-@click.option("--out", required=True, type=click.Path(dir_okay=False), help="Output shard (.h5).")
+@click.option("--out", required=True, type=click.Path(dir_okay=False), callback=shard_path,
+              help="Output shard (.h5).")
 @user_errors
 def body(
     seed,
@@ -314,10 +316,11 @@ def scene_with_outfit(spec, garment: str | None, fabric: str | None, seed: int):
               help="auto (derived from the scene), all, a comma list of effects, or auto or all "
                    "with changes (auto,-self_collision).")
 @click.option("--wind", default=None, help="Wind velocity 'x,y,z' in m/s (turns wind on).")
-@click.option("--out", required=True, type=click.Path(dir_okay=False), help="Output shard (.h5).")
+@click.option("--out", required=True, type=click.Path(dir_okay=False), callback=shard_path,
+              help="Output shard (.h5).")
 @click.option("--export-obj", type=click.Path(file_okay=False),
               help="Also write every frame of every garment (and the body) as OBJ here.")
-@click.option("--preview", type=click.Path(dir_okay=False),
+@click.option("--preview", type=click.Path(dir_okay=False), callback=preview_path,
               help="Also render the sequence: .gif (animated) or .png (a few frames).")
 @user_errors
 def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, solver, quality,

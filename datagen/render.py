@@ -6,6 +6,7 @@ headless on any machine the simulator runs on.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -125,11 +126,32 @@ def render_sequence(
     return images
 
 
+PREVIEW_SUFFIXES = (".gif", ".png")
+
+
+def write_preview(path: str | Path, layers: Callable[[int], list[MeshLayer]], n_frames: int,
+                  fps: float, every: int = 2, height: int = 320) -> list[int]:
+    """Render frames 0..n_frames-1 of a sequence, each frame's meshes given by `layers`: an
+    animated GIF of every `every`-th frame, or a PNG of four frames in a 2x2 grid, by the
+    path's suffix (PREVIEW_SUFFIXES). Returns the frames drawn."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in PREVIEW_SUFFIXES:
+        raise ValueError(f"a preview is a .gif or .png file, got {str(path)!r}")
+    if suffix == ".gif":
+        picks = list(range(0, n_frames, every))
+        save_gif(path, render_sequence([layers(f) for f in picks], height=height), fps=fps / every)
+        return picks
+    picks = [int(f) for f in np.linspace(0, n_frames - 1, 4).round()]
+    images = render_sequence([layers(f) for f in picks], height=height)
+    save_png(path, np.concatenate([np.concatenate(images[:2], axis=1),
+                                   np.concatenate(images[2:], axis=1)], axis=0))
+    return picks
+
+
 def preview_record(path: str | Path, record, every: int = 2, height: int = 320) -> None:
     """Render a simulated sequence record: GIF (every `every`-th frame) or PNG (4 frames)."""
     body = record.body
     start = body.lead_in_frames
-    n = body.n_frames - start
     colours = {g.name: GARMENT_COLOURS[k % len(GARMENT_COLOURS)]
                for k, g in enumerate(record.garments or [])}
 
@@ -139,14 +161,4 @@ def preview_record(path: str | Path, record, every: int = 2, height: int = 320) 
             out.append(MeshLayer(record.sim.vertices[g.name][f], g.faces, colours[g.name], True))
         return out
 
-    path = Path(path)
-    if path.suffix.lower() == ".gif":
-        frames = list(range(0, n, every))
-        images = render_sequence([layers(f) for f in frames], height=height)
-        save_gif(path, images, fps=body.fps / every)
-    else:
-        picks = np.linspace(0, n - 1, 4).round().astype(int)
-        images = render_sequence([layers(f) for f in picks], height=height)
-        top = np.concatenate(images[:2], axis=1)
-        bottom = np.concatenate(images[2:], axis=1)
-        save_png(path, np.concatenate([top, bottom], axis=0))
+    write_preview(path, layers, body.n_frames - start, body.fps, every, height)

@@ -147,6 +147,36 @@ def test_a_negative_seed_is_refused_by_name(tmp_path, command):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("command, option, name, expected", [
+    ("simulate", "--preview", "s.mp4", "a .gif (animated) or .png"),
+    ("simulate", "--out", "s.hdf5", "a shard file name ending in .h5"),
+    ("body", "--out", "b.txt", "a shard file name ending in .h5"),
+    ("preview", "--out", "p.jpg", "a .gif (animated) or .png"),
+])
+def test_an_output_name_no_writer_or_reader_takes_is_refused_before_any_work(
+        tmp_path, monkeypatch, command, option, name, expected):
+    """`datagen simulate --preview s.mp4` ran the whole scene, wrote the shard and then ended in
+    imageio's traceback; a shard named s.hdf5 was written where a folder's reader and `datagen
+    validate` (*.h5) never look. Both are refused as the command line is read."""
+    from click.testing import CliRunner
+
+    import datagen.body.anny_model as anny_model
+    from datagen.cli import main
+
+    def no_work():
+        raise AssertionError(f"the body model was built before {option} was checked")
+
+    monkeypatch.setattr(anny_model, "default_body_model", no_work)
+    target = tmp_path / name
+    args = {"simulate": ["simulate", "--out", str(tmp_path / "s.h5")],
+            "body": ["body"], "preview": ["preview", str(tmp_path)]}[command]
+    result = CliRunner().invoke(main, [*args, option, str(target)])
+    assert result.exit_code == 2, result.output
+    assert f"Invalid value for '{option}'" in result.output and expected in result.output
+    assert repr(str(target)) in result.output
+    assert not any(tmp_path.iterdir())
+
+
 def test_body_options_the_recipe_draws_are_refused_with_a_pipeline(tmp_path):
     """With --pipeline the recipe draws the subject and the motion's length: --seed and
     --frames were ignored without a word, and --index -1 ended in a numpy traceback."""

@@ -151,4 +151,4 @@ def test_preview(tmp_path):
     frames = iio.imread(gif, index=None)
     assert frames.shape[0] == 4  # frames 0, 3, 6, 9
     code, out = run_cli("preview", dataset.root, "--sequence", SEQ, "--out", tmp_path / "x.jpg")
-    assert code == 2 and ".gif or .png" in out
+    assert code == 2 and ".gif (animated) or .png" in out

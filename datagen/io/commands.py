@@ -12,6 +12,7 @@ from pathlib import Path
 
 import click
 
+from datagen.cli_paths import preview_path
 from datagen.errors import DatagenError, user_errors
 
 EXPORT_FORMATS = ("obj", "pc2", "ply")
@@ -125,7 +126,7 @@ def export(file: str, sequence: str | None, fmt: str, out: str, body: bool) -> N
 @click.command("preview")
 @click.argument("file", type=click.Path(exists=True))
 @click.option("--sequence", "sequence", default=None, help=_SEQUENCE_HELP)
-@click.option("--out", required=True, type=click.Path(dir_okay=False),
+@click.option("--out", required=True, type=click.Path(dir_okay=False), callback=preview_path,
               help="X.gif (animated) or X.png (a 2x2 grid of four frames).")
 @click.option("--every", default=2, show_default=True, type=click.IntRange(min=1),
               help="GIF: render every N-th frame.")
@@ -134,20 +135,8 @@ def export(file: str, sequence: str | None, fmt: str, out: str, body: bool) -> N
 @user_errors
 def preview(file: str, sequence: str | None, out: str, every: int, height: int) -> None:
     """Render a stored sequence, body and garments, from the front and the side."""
-    suffix = Path(out).suffix.lower()
-    if suffix not in (".gif", ".png"):
-        raise click.BadParameter("expected a .gif or .png file name", param_hint="--out")
-    import numpy as np
-
     from datagen.io.reader import DatasetReader
-    from datagen.render import (
-        BODY_COLOUR,
-        GARMENT_COLOURS,
-        MeshLayer,
-        render_sequence,
-        save_gif,
-        save_png,
-    )
+    from datagen.render import BODY_COLOUR, GARMENT_COLOURS, MeshLayer, write_preview
 
     with DatasetReader(file) as reader:
         sid = _sequence_of(reader, sequence)
@@ -162,16 +151,7 @@ def preview(file: str, sequence: str | None, out: str, every: int, height: int) 
             out_layers.append(MeshLayer(g["vertices"][f], g["faces"], colour, two_sided=True))
         return out_layers
 
-    if suffix == ".gif":
-        picks = list(range(0, n, every))
-        images = render_sequence([layers(f) for f in picks], height=height)
-        save_gif(out, images, fps=body["fps"] / every)
-    else:
-        picks = [int(f) for f in np.linspace(0, n - 1, 4).round()]
-        images = render_sequence([layers(f) for f in picks], height=height)
-        grid = np.concatenate([np.concatenate(images[:2], axis=1),
-                               np.concatenate(images[2:], axis=1)], axis=0)
-        save_png(out, grid)
+    picks = write_preview(out, layers, n, body["fps"], every, height)
     click.echo(f"wrote {out}: sequence {sid}, frames {', '.join(map(str, picks[:8]))}"
                f"{', ...' if len(picks) > 8 else ''} of {n}")
 

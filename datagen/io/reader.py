@@ -45,7 +45,7 @@ import h5py
 import numpy as np
 
 from datagen.errors import InputError
-from datagen.io.shard import TMP_SUFFIX, ShardReader, read_positions
+from datagen.io.shard import SHARD_SUFFIX, TMP_SUFFIX, ShardReader, read_positions
 from datagen.spec import SceneSpec
 
 # DeePSD's fabric encoding order; fabrics outside it (rubber, user fabrics) encode as zeros.
@@ -73,7 +73,7 @@ def shard_paths(path: str | Path) -> list[Path]:
     or the one file given."""
     path = Path(path)
     if path.is_dir():
-        return sorted(p for p in path.glob("*.h5") if p.is_file())
+        return sorted(p for p in path.glob("*" + SHARD_SUFFIX) if p.is_file())
     if path.is_file():
         return [path]
     raise InputError(path, None, "a shard file or a dataset folder", "no such file or folder")
@@ -105,7 +105,7 @@ class DatasetReader:
         self.path = Path(path)
         self.shards = shard_paths(self.path)
         if not self.shards:
-            unfinished = any(self.path.glob("*.h5" + TMP_SUFFIX))
+            unfinished = any(self.path.glob("*" + SHARD_SUFFIX + TMP_SUFFIX))
             raise InputError(self.path, None, "a folder with shard files (*.h5)",
                              "only unfinished *.h5.tmp files" if unfinished else "none")
         self._where: dict[str, Path] = {}

@@ -28,6 +28,7 @@ from datagen.types import BodySequence, LinearSkinning
 FORMAT = "datagen-shard"
 FORMAT_VERSION = 1
 TMP_SUFFIX = ".tmp"
+SHARD_SUFFIX = ".h5"  # what a dataset folder's shards end in
 
 
 def _version() -> str:

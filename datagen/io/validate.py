@@ -21,6 +21,7 @@ from datagen import qa as qa_bounds
 from datagen.io.shard import (
     FORMAT,
     FORMAT_VERSION,
+    SHARD_SUFFIX,
     TMP_SUFFIX,
     h5py_reason,
     unreadable_reason,
@@ -106,7 +107,7 @@ def validate_report(path: str | Path, qa: str = "error") -> Report:
         report.problems.append(Problem(
             str(tmp), None, "leftover temporary file of an interrupted write (not part of the "
             "dataset; delete it, or resume the run to redo that shard)", "warning"))
-    shard_files = sorted(p for p in path.glob("*.h5") if p.is_file())
+    shard_files = sorted(p for p in path.glob("*" + SHARD_SUFFIX) if p.is_file())
     report.shards = [str(p) for p in shard_files]
     if not shard_files:
         report.problems.append(Problem(str(path), None, "no shard files (*.h5) in this folder"))
