@@ -20,16 +20,24 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from datagen.errors import InputError
-from datagen.io.shard import FORMAT, FORMAT_VERSION, TMP_SUFFIX, ShardWriter, write_record
+from datagen.io.shard import (
+    FORMAT,
+    FORMAT_VERSION,
+    SHARD_SUFFIX,
+    TMP_SUFFIX,
+    ShardWriter,
+    write_record,
+)
 from datagen.recipe import LoadedRecipe, load_recipe
 
 MANIFEST = "manifest.jsonl"
 DATASET_INFO = "dataset.json"
 CARD = "README.md"
+SHARD_GLOB = "shard-*" + SHARD_SUFFIX  # the shards this run writes (shard_name)
 
 
 def shard_name(k: int) -> str:
-    return f"shard-{k:05d}.h5"
+    return f"shard-{k:05d}{SHARD_SUFFIX}"
 
 
 # -- workers -----------------------------------------------------------------------------------
@@ -131,7 +139,7 @@ def prepare_output(out: Path, loaded: LoadedRecipe, shard_size: int, n: int) -> 
                     f"{info[key]!r} to resume this run (the folder holds another dataset; "
                     "choose a new --out)", existing.get(key))
     else:
-        for shard in out.glob("shard-*.h5"):
+        for shard in out.glob(SHARD_GLOB):
             _check_foreign_shard(shard)
     for tmp in out.glob("*" + TMP_SUFFIX):
         tmp.unlink()  # a shard whose writing was interrupted: it is recomputed
@@ -173,7 +181,7 @@ def manifest_rows(out: Path) -> list[dict]:
     import h5py
 
     rows = []
-    for shard in sorted(out.glob("shard-*.h5")):
+    for shard in sorted(out.glob(SHARD_GLOB)):
         with h5py.File(shard, "r") as f:
             for seq_id, g in f.get("sequences", {}).items():
                 spec = json.loads(g.attrs["spec"])
@@ -239,7 +247,7 @@ def write_card(out: Path, loaded: LoadedRecipe, rows: list[dict], wall: float | 
         lines += [f"| {k} | {v} |" for k, v in sorted(counter.items())]
         return "\n".join(lines)
 
-    size = sum(p.stat().st_size for p in out.glob("shard-*.h5"))
+    size = sum(p.stat().st_size for p in out.glob(SHARD_GLOB))
     frames = sum(r["frames"] for r in ok)
     qa_deep = max((r["qa"].get("deep_share", 0.0) for r in ok), default=0.0)
     qa_strain = max((r["qa"].get("strain_p999", 0.0) for r in ok), default=0.0)
@@ -255,7 +263,7 @@ def write_card(out: Path, loaded: LoadedRecipe, rows: list[dict], wall: float | 
         f"- sequences: {len(ok)} finished, {len(rejected)} rejected, of "
         f"{loaded.recipe.sequences} in the recipe",
         f"- frames: {frames} ({frames / 30.0:.0f} s at 30 fps)",
-        f"- storage: {size / 2**20:.1f} MiB in {len(list(out.glob('shard-*.h5')))} shards",
+        f"- storage: {size / 2**20:.1f} MiB in {len(list(out.glob(SHARD_GLOB)))} shards",
         f"- compute: {compute / 60:.1f} min of sequence work"
         + (f"; this run took {wall / 60:.1f} min on {workers} worker(s), "
            f"{len(rows) / max(wall, 1e-9) * 3600:.0f} sequences per hour" if wall else ""),
