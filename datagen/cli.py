@@ -70,6 +70,17 @@ def _motion_options(func):
     return func
 
 
+def _fps_option(func):
+    return click.option(
+        "--fps",
+        type=click.FloatRange(min=0.0, min_open=True),
+        default=30.0,
+        show_default=True,
+        help="Output frame rate. The motion is sampled at it, the lead-in from rest lasts as "
+             "long at any rate (15 frames at 30 fps), and so do the simulator's steps.",
+    )(func)
+
+
 def single_scene_spec(
     seed: int,
     action: str | None,
@@ -78,15 +89,18 @@ def single_scene_spec(
     frames: int,
     gender: str | None,
     fps: float = 30.0,
-    lead_in: int = 15,
+    lead_in: int | None = None,
 ):
     """The SceneSpec of a one-off scene from CLI options: the seed draws the subject, options
-    fix the rest."""
+    fix the rest. `lead_in` in frames; None: as long in time as a recipe's default."""
     from dataclasses import replace
 
     from datagen.recipe import LoadedRecipe, MotionConfig, Recipe
     from datagen.sampling import sample_scene
     from datagen.spec import MotionSpec
+
+    if lead_in is None:
+        lead_in = round(MotionConfig.lead_in * fps / MotionConfig.fps)
 
     chosen = [x for x in (action, bvh, amass) if x]
     if len(chosen) > 1:
@@ -163,8 +177,9 @@ def body_model_from_options(name: str, smpl_model: str | None):
     default=120,
     show_default=True,
     type=click.IntRange(min=1),
-    help="Output frames at 30 fps (a lead-in from rest is added before them).",
+    help="Output frames at --fps (a lead-in from rest is added before them).",
 )
+@_fps_option
 @click.option(
     "--gender",
     type=click.Choice(["female", "male"]),
@@ -199,6 +214,7 @@ def body(
     bvh,
     amass,
     frames,
+    fps,
     gender,
     body_model,
     smpl_model,
@@ -216,12 +232,13 @@ def body(
     base_dir = None
     config = BodyConfig()
     ctx = click.get_current_context()
-    given = [f"--{name}" for name in ("seed", "frames")
+    given = [f"--{name}" for name in ("seed", "frames", "fps")
              if ctx.get_parameter_source(name) == click.core.ParameterSource.COMMANDLINE]
     if pipeline and given:
         # The recipe draws them; taking one silently would write a scene not asked for.
         raise click.UsageError(f"{' and '.join(given)} cannot be used with --pipeline, whose "
-                               f"recipe draws the subject and the motion's length")
+                               f"recipe draws the subject and sets the motion's length and "
+                               f"frame rate")
     if pipeline:
         from datagen.recipe import load_recipe
         from datagen.sampling import sample_scene
@@ -230,12 +247,14 @@ def body(
         spec = sample_scene(loaded, index)
         base_dir, config = loaded.base_dir, loaded.recipe.body
         if action or bvh or amass:
-            override = single_scene_spec(seed, action, bvh, amass, spec.motion.frames, gender)
+            # Only the motion's source changes: its length, rate and lead-in stay the recipe's.
+            override = single_scene_spec(seed, action, bvh, amass, spec.motion.frames, gender,
+                                         spec.motion.fps, spec.motion.lead_in)
             spec = replace(spec, motion=override.motion)
         if gender:
             spec = replace(spec, subject=replace(spec.subject, gender=gender))
     else:
-        spec = single_scene_spec(seed, action, bvh, amass, frames, gender)
+        spec = single_scene_spec(seed, action, bvh, amass, frames, gender, fps)
     model = body_model_from_options(body_model, smpl_model)
     if body_model == "smpl":
         names = model.shape_names
@@ -307,7 +326,8 @@ def scene_with_outfit(spec, garment: str | None, fabric: str | None, seed: int):
               help="Simulate only this garment. Default: a whole outfit drawn from --seed.")
 @_motion_options
 @click.option("--frames", default=60, show_default=True, type=click.IntRange(min=1),
-              help="Output frames at 30 fps (after a lead-in from rest).")
+              help="Output frames at --fps (after a lead-in from rest).")
+@_fps_option
 @click.option("--solver", type=click.Choice(["xpbd", "implicit", "explicit"]), default="xpbd",
               show_default=True)
 @click.option("--quality", type=click.Choice(["draft", "default", "reference"]),
@@ -323,8 +343,8 @@ def scene_with_outfit(spec, garment: str | None, fabric: str | None, seed: int):
 @click.option("--preview", type=click.Path(dir_okay=False), callback=preview_path,
               help="Also render the sequence: .gif (animated) or .png (a few frames).")
 @user_errors
-def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, solver, quality,
-             effects, wind, out, export_obj, preview) -> None:
+def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, fps, solver,
+             quality, effects, wind, out, export_obj, preview) -> None:
     """Simulate one scene end to end (body, outfit, cloth) and write it to a shard."""
     from dataclasses import replace
 
@@ -339,7 +359,7 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, so
     if fabric:
         get_fabric(fabric, user_fabrics)  # a clear error for an unknown name, before any work
     split_effects_request(effects)  # likewise for --effects
-    spec = single_scene_spec(seed, action, bvh, amass, frames, None)
+    spec = single_scene_spec(seed, action, bvh, amass, frames, None, fps)
     spec = scene_with_outfit(spec, garment, fabric, seed)
     wind_v = None
     if wind:

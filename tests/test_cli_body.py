@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
+import shard_factory as sf  # noqa: E402
 from test_smpl import make_model  # noqa: E402
 
 DATAGEN = [sys.executable, "-m", "datagen.cli"]
@@ -188,6 +189,59 @@ def test_body_options_the_recipe_draws_are_refused_with_a_pipeline(tmp_path):
     r = run("body", "--pipeline", recipe, "--index", -1, "--out", out)
     assert r.returncode == 2 and "Invalid value for '--index'" in r.stderr, r.stderr
     assert "Traceback" not in r.stderr and not out.exists()
+    r = run("body", "--pipeline", recipe, "--fps", 60, "--out", out)
+    assert r.returncode == 2, r.stderr
+    assert "--fps cannot be used with --pipeline" in r.stderr, r.stderr
+
+
+def test_a_motion_given_with_a_pipeline_keeps_the_recipes_rate_and_lead_in(tmp_path):
+    """--motion with --pipeline changes the motion's source only: its frames, rate and lead-in
+    stay the recipe's (the override was drawn at 30 fps with a 15-frame lead-in)."""
+    from datagen.io.shard import ShardReader
+
+    text = (Path(__file__).parents[1] / "pipelines" / "default.yaml").read_text()
+    text = (text.replace("frames: 90 ", "frames: 4 ").replace("fps: 30", "fps: 20")
+            .replace("lead_in: 15 ", "lead_in: 3 ")
+            .replace("sources: {procedural: 3, bvh: 1}", "sources: {procedural: 1}"))
+    recipe = tmp_path / "slow.yaml"
+    recipe.write_text(text)
+    out = tmp_path / "b.h5"
+    r = run("body", "--pipeline", recipe, "--motion", "jump", "--store-vertices", "--out", out)
+    assert r.returncode == 0, r.stderr
+    with ShardReader(out) as reader:
+        (seq,) = reader.sequence_ids()
+        g = reader.group(seq)
+        assert (g.attrs["fps"], g.attrs["action"]) == (20.0, "jump")
+        assert g["body"]["poses"].shape == (4, 72)
+
+
+def test_the_output_rate_reaches_the_scene_with_a_lead_in_as_long_in_time(monkeypatch, tmp_path):
+    """`simulate --fps`: the motion is drawn at that rate and its lead-in from rest lasts the
+    default's 0.5 s (15 frames at 30 fps, 30 at 60, 12 at 24)."""
+    from click.testing import CliRunner
+
+    import datagen.body.anny_model as anny_model
+    import datagen.pipeline.stages as stages
+    from datagen.cli import main
+
+    monkeypatch.setattr(anny_model, "default_body_model", lambda: None)
+    motions = []
+
+    def spy(spec, model, fabrics=None):
+        motions.append(spec.motion)
+        record = sf.make_record(0).record
+        record.sim.report["simulated_seconds_per_wall_second"] = 1.0
+        return record
+
+    monkeypatch.setattr(stages, "run_sequence", spy)
+    for fps in ("60", "24", "30"):
+        result = CliRunner().invoke(main, ["simulate", "--fps", fps, "--frames", "4",
+                                           "--out", str(tmp_path / f"{fps}.h5")])
+        assert result.exit_code == 0, result.output
+    assert [(m.fps, m.frames, m.lead_in) for m in motions] == [
+        (60.0, 4, 30), (24.0, 4, 12), (30.0, 4, 15)]
+    result = CliRunner().invoke(main, ["simulate", "--fps", "0", "--out", str(tmp_path / "0.h5")])
+    assert result.exit_code == 2 and "Invalid value for '--fps'" in result.output
 
 
 @pytest.mark.parametrize("wind", ["nan,0,0", "1,inf,0", "1,2"])

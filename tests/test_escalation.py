@@ -50,6 +50,35 @@ def test_escalation_goes_one_preset_up_with_plain_sweeps():
     assert SimOptions().steps_label() == "default 20x4, sor 1.6"
 
 
+def test_presets_keep_their_step_and_search_interval_in_time_at_any_output_rate():
+    """The presets were tuned at 30 fps (20 substeps a frame at `default`: a 1/600 s step).
+    Kept per frame, a 15 fps walk ran at twice that step and a 60 fps one paid twice the
+    substeps per simulated second. Values worked out by hand from 20 x 30 / fps, rounded up
+    unless within 1 % of a whole number."""
+    from datagen.errors import InputError
+    from datagen.sim.simulate import interval_at, substeps_at
+
+    default = SimOptions()
+    for fps, substeps in [(30.0, 20), (60.0, 10), (24.0, 25), (25.0, 24), (29.97, 20),
+                          (90.0, 7), (15.0, 40), (10.0, 60), (120.0, 5), (1000.0, 1)]:
+        assert default.resolve_steps(fps) == (substeps, 4), fps
+    assert default.steps_label(60.0) == "default 10x4, sor 1.6"
+    assert SimOptions(substeps=20).resolve_steps(60.0) == (20, 4)  # the caller's, as given
+    assert SimOptions(solver="implicit").resolve_steps(60.0) == (3, 10)  # 2.5 rounded up
+    explicit = SimOptions(solver="explicit")
+    assert [explicit.resolve_steps(fps)[0] for fps in (30.0, 29.97, 30.3)] == [400, 400, 396]
+    # The ladder at 60 fps: reference 40x8 is 20x8 there, and the rung past it twice that.
+    past = next_rung(default.escalated(), 60.0)
+    assert (past.resolve_steps(60.0), past.sor) == ((40, 16), ESCALATED_SOR)
+    # The full search every 5 frames at 30 fps (1/6 s): never less often in time, but at
+    # most once a frame.
+    assert [interval_at(fps, 5) for fps in (30.0, 60.0, 29.97, 15.0, 10.0, 5.0)] == \
+        [5, 10, 5, 2, 1, 1]
+    assert substeps_at(30.0, 1) == 1
+    with pytest.raises(InputError, match="fps"):
+        default.resolve_steps(0.0)
+
+
 def _sheet_on_sphere(monkeypatch, bound: float):
     """A cotton sheet falling on a sphere, with cotton's strain bound set to `bound`. Strain
     refinement is off, so a frame over the bound stays over it."""

@@ -117,19 +117,20 @@ def mark_rejected(record: SequenceRecord, exc: RejectedSequence) -> None:
 ESCALATION_PAST_TOP = 2
 
 
-def next_rung(options: SimOptions) -> SimOptions | None:
+def next_rung(options: SimOptions, fps: float | None = None) -> SimOptions | None:
     """The escalation ladder's next options after a run at `options` broke a bound or was
     rejected as unstable: SimOptions.escalated() (the next quality preset up, plain sweeps),
-    and from the top preset, once, its steps times ESCALATION_PAST_TOP, sweeps as plain. None
-    from steps the caller (or that last rung) gave."""
-    from datagen.sim.simulate import QUALITY_PRESETS
+    and from the top preset, once, its steps at output rate `fps` (None: PRESET_FPS) times
+    ESCALATION_PAST_TOP, sweeps as plain. None from steps the caller (or that last rung)
+    gave."""
+    from datagen.sim.simulate import PRESET_FPS, QUALITY_PRESETS
 
     up = options.escalated()
     if up is not None or options.substeps is not None or options.iterations is not None:
         return up
     if options.quality not in QUALITY_PRESETS.get(options.solver, {}):
         return None
-    sub, it = options.resolve_steps()
+    sub, it = options.resolve_steps(PRESET_FPS if fps is None else fps)
     return replace(options, substeps=ESCALATION_PAST_TOP * sub,
                    iterations=ESCALATION_PAST_TOP * it, sor=options.escalated_sor())
 
@@ -150,13 +151,14 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
     already (in a batch, datagen.pipeline.batched), which is then judged instead of simulating
     again."""
     from datagen import qa
-    from datagen.sim.simulate import simulate
+    from datagen.sim.simulate import PRESET_FPS, simulate
 
     dropped: list[dict] = []  # the runs not kept: settings, reason, wall time
+    fps = body.fps if body is not None else PRESET_FPS
     current, outcome = options, first
     while True:
-        up = next_rung(current)
-        settings = f"{current.solver} {current.steps_label()}"
+        up = next_rung(current, fps)
+        settings = f"{current.solver} {current.steps_label(fps)}"
         try:
             if isinstance(outcome, RejectedSequence):
                 raise outcome
@@ -166,7 +168,7 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
                 if not dropped:
                     raise
                 raise RejectedSequence(exc.stage, exc.reason + _runs_note(
-                    current.steps_label(), dropped), exc.frames) from None
+                    current.steps_label(fps), dropped), exc.frames) from None
             dropped.append({"settings": settings, "reason": exc.reason, "wall_time_s": None})
         else:
             found = qa.breaches(sim.qa)

@@ -9,6 +9,7 @@ a frame that still fails rejects the sequence with the reason instead of writing
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import asdict, dataclass, field, replace
 
@@ -26,8 +27,8 @@ from datagen.sim.progress import report_frame
 from datagen.sim.solvers import SolverSettings, make_solver
 from datagen.types import BodySequence, Garment, SimResult
 
-# Quality presets per solver: substeps per frame and iterations (docs/accuracy-vs-time.md says
-# where each sits on the measured accuracy/time front).
+# Quality presets per solver: substeps per frame at PRESET_FPS and iterations
+# (docs/accuracy-vs-time.md says where each sits on the measured accuracy/time front).
 QUALITY_PRESETS: dict[str, dict[str, tuple[int, int]]] = {
     "xpbd": {"draft": (10, 2), "default": (20, 4), "reference": (40, 8)},
     "explicit": {"draft": (200, 1), "default": (400, 1), "reference": (2000, 1)},
@@ -63,6 +64,16 @@ OVER_RELAXATION: dict[str, float] = {"xpbd": 1.6}
 # over-relaxation: the 1.6 that pays at 20x4 runs the fast kick's trousers away at 40x8 (88 m/s
 # at frame 26), where plain sweeps pass it (docs/simulator.md, "Escalation").
 ESCALATED_SOR = 1.0
+# The output rate at which the presets' substeps and the full search's interval
+# (SimOptions.search_every) were tuned. At another rate both are scaled so that they stay the
+# same in time: the step sets stability, accuracy and how far a limb moves in one, and the
+# output rate should not. Kept per frame, a 15 fps walk in denim ran at twice the tuned step
+# and had 8 of its frames redone for strain, and a 60 fps one cost 1.65x the 30 fps run per
+# simulated second (docs/simulator.md, "The output rate").
+PRESET_FPS = 30.0
+# A scaled count within this fraction of a whole number is that number (29.97 fps: 20
+# substeps, not 21).
+RATE_TOLERANCE = 0.01
 MAX_RETRIES = 2
 REFINE_REST = 10  # frames without strain refinement after one that did not help
 # ...unless a frame ends with this multiple of the previous frame's over-strained share: a new
@@ -79,6 +90,35 @@ ENERGY_SLACK = 2.0
 ENERGY_FLOOR_SPEED = 0.1  # m/s
 
 
+def _rate_ratio(fps: float) -> float:
+    if not fps > 0:
+        raise InputError(None, "fps", "a positive frame rate", fps)
+    return fps / PRESET_FPS
+
+
+def _whole(x: float, up: bool) -> int:
+    """x as a whole number: the nearest where within RATE_TOLERANCE of it, else rounded up (or
+    down)."""
+    near = round(x)
+    if abs(x - near) <= RATE_TOLERANCE * x:
+        return near
+    return math.ceil(x) if up else math.floor(x)
+
+
+def substeps_at(fps: float, substeps_at_preset_fps: int) -> int:
+    """Substeps per frame at output rate `fps` for a count tuned at PRESET_FPS: the same step
+    in time, rounded to more substeps, so that a step is never longer than tuned (by more than
+    RATE_TOLERANCE)."""
+    return max(1, _whole(substeps_at_preset_fps / _rate_ratio(fps), up=True))
+
+
+def interval_at(fps: float, frames_at_preset_fps: int) -> int:
+    """Frames between two events at output rate `fps` for an interval tuned at PRESET_FPS: the
+    same interval in time, rounded to fewer frames, so that it is never longer than tuned (by
+    more than RATE_TOLERANCE), but at least one frame."""
+    return max(1, _whole(frames_at_preset_fps * _rate_ratio(fps), up=False))
+
+
 @dataclass
 class SimOptions:
     solver: str = "xpbd"
@@ -91,7 +131,7 @@ class SimOptions:
     settle_seconds: float = 0.5
     fabrics: dict[str, Fabric] = field(default_factory=dict)  # user fabrics by name
     profile_every: int = 30  # frames between per-effect cost samples (fused solvers)
-    search_every: int = 5  # frames between full closest-triangle searches
+    search_every: int = 5  # frames between full closest-triangle searches, at PRESET_FPS
     # Times a frame may be redone with twice the substeps while its strain is over the bound:
     # stiff fabrics pulled by fast limbs need more substeps than the preset in some frames only.
     strain_refinements: int = 2
@@ -106,7 +146,9 @@ class SimOptions:
     # at 160 substeps, back under 4 m/s two frames later).
     speed_limit: float = SPEED_LIMIT
 
-    def resolve_steps(self) -> tuple[int, int]:
+    def resolve_steps(self, fps: float = PRESET_FPS) -> tuple[int, int]:
+        """(substeps per frame, iterations) at output rate `fps`: the caller's, else the
+        preset's, its substeps scaled from PRESET_FPS (substeps_at)."""
         presets = QUALITY_PRESETS.get(self.solver)
         if presets is None:
             raise InputError(None, "solver", f"one of {', '.join(QUALITY_PRESETS)}", self.solver)
@@ -115,7 +157,7 @@ class SimOptions:
         if self.solver in PARALLEL_QUALITY_PRESETS and not backend.serial():
             presets = PARALLEL_QUALITY_PRESETS[self.solver]
         sub, it = presets[self.quality]
-        return self.substeps or sub, self.iterations or it
+        return self.substeps or substeps_at(fps, sub), self.iterations or it
 
     def escalated(self) -> SimOptions | None:
         """The options a sequence is simulated again with when its run breaks a
@@ -137,9 +179,10 @@ class SimOptions:
             return self.sor
         return ESCALATED_SOR
 
-    def steps_label(self) -> str:
-        """'default 20x4, sor 1.6': the settings a run of these options used, in words."""
-        sub, it = self.resolve_steps()
+    def steps_label(self, fps: float = PRESET_FPS) -> str:
+        """'default 20x4, sor 1.6': the settings a run of these options used at output rate
+        `fps`, in words."""
+        sub, it = self.resolve_steps(fps)
         alternate = ", every other sweep plain" if self.plain_reverse_sweeps() else ""
         return f"{self.quality} {sub}x{it}, sor {self.resolve_sor():g}{alternate}"
 
@@ -421,10 +464,11 @@ class _Simulation:
             self.model.x0 = self.model.x0 @ rot.T + shift
         content = scene_content(garments, body is not None, options.wind, self.fabrics)
         self.effects: Effects = resolve_effects(options.effects, content)
-        self.substeps, self.iterations = options.resolve_steps()
+        self.fps = body.fps if body is not None else PRESET_FPS
+        self.substeps, self.iterations = options.resolve_steps(self.fps)
+        self.search_every = interval_at(self.fps, options.search_every)
         self.sor = options.resolve_sor()
         self.plain_reverse = options.plain_reverse_sweeps()
-        self.fps = body.fps if body is not None else 30.0
         if body is not None:
             self.faces = np.asarray(body.faces)
             self.mask = np.asarray(body.face_mask, dtype=bool)
@@ -587,7 +631,7 @@ class _Simulation:
         qa_rows: list[dict] = []
         step = 0
         total = settle + n_body - 1
-        settings = f"{self.options.solver} {self.options.steps_label()}"
+        settings = f"{self.options.solver} {self.options.steps_label(self.fps)}"
         for _ in range(settle):
             # The outfit settles on the rest pose quasi-statically: each frame starts at rest,
             # so a garment fitted with ease lands on the shoulders without the impact that
@@ -627,7 +671,7 @@ class _Simulation:
         self._frame_start = (x0, [p.kinetic_energy(self.model, v0) for p in self.parts])
         tracking0 = solver.get_tracking()
         every = self.options.profile_every
-        search = step % self.options.search_every == 0
+        search = step % self.search_every == 0
         reason = self._frame(solver, f0, f1, every > 0 and step % every == 0, search)
         limit = self.options.strain_refinements if refine else 0
         resting = self.refine_rest > 0
