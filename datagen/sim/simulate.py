@@ -64,18 +64,19 @@ OVER_RELAXATION: dict[str, float] = {"xpbd": 1.6}
 # over-relaxation: the 1.6 that pays at 20x4 runs the fast kick's trousers away at 40x8 (88 m/s
 # at frame 26), where plain sweeps pass it (docs/simulator.md, "Escalation").
 ESCALATED_SOR = 1.0
-# The output rate at which the presets' substeps and the full search's interval
-# (SimOptions.search_every) were tuned. At another rate both are scaled so that they stay the
-# same in time: the step sets stability, accuracy and how far a limb moves in one, and the
-# output rate should not. Kept per frame, a 15 fps walk in denim ran at twice the tuned step
-# and had 8 of its frames redone for strain, and a 60 fps one cost 1.65x the 30 fps run per
-# simulated second (docs/simulator.md, "The output rate").
+# The output rate at which the presets' substeps, the full search's interval
+# (SimOptions.search_every) and the strain refinement's rest (REFINE_REST) were tuned. At
+# another rate they are scaled so that they stay the same in time: the step sets stability,
+# accuracy and how far a limb moves in one, and the output rate should not. Kept per frame, a
+# 15 fps walk in denim ran at twice the tuned step and had 8 of its frames redone for strain,
+# and a 60 fps one cost 1.65x the 30 fps run per simulated second (docs/simulator.md, "The
+# output rate").
 PRESET_FPS = 30.0
 # A scaled count within this fraction of a whole number is that number (29.97 fps: 20
 # substeps, not 21).
 RATE_TOLERANCE = 0.01
 MAX_RETRIES = 2
-REFINE_REST = 10  # frames without strain refinement after one that did not help
+REFINE_REST = 10  # frames (at PRESET_FPS) without strain refinement after one that did not help
 # ...unless a frame ends with this multiple of the previous frame's over-strained share: a new
 # event (a kick), not the persistent, slowly changing strain of a garment smaller than its body.
 REST_BREAK = 1.5
@@ -467,6 +468,7 @@ class _Simulation:
         self.fps = body.fps if body is not None else PRESET_FPS
         self.substeps, self.iterations = options.resolve_steps(self.fps)
         self.search_every = interval_at(self.fps, options.search_every)
+        self.refine_rest_frames = interval_at(self.fps, REFINE_REST)
         self.sor = options.resolve_sor()
         self.plain_reverse = options.plain_reverse_sweeps()
         if body is not None:
@@ -660,7 +662,8 @@ class _Simulation:
         `strain_refinements` times, then the frame is kept: strain is a quality figure, not a
         failure). When even the last refinement removes less than a fifth of the
         over-strained edges, substeps do not resolve this strain (a garment made smaller than
-        its body): refinement then rests for REFINE_REST frames, unless a frame ends with
+        its body): refinement then rests for REFINE_REST frames (at PRESET_FPS: as long in
+        time at any rate), unless a frame ends with
         REST_BREAK times the previous frame's over-strained share (a kick that starts while a
         tight crotch rests: resting through it left 4.8 % of a trouser's edges over the bound).
         (The first doubling alone can
@@ -695,7 +698,7 @@ class _Simulation:
                     self.refine_rest = 0  # the strain jumped: a new event, refine it
                 if level >= limit:
                     if share > 0.8 * first:
-                        self.refine_rest = REFINE_REST
+                        self.refine_rest = self.refine_rest_frames
                     break
                 self.strain_refinements += 1
             elif stable is not None:  # a refinement went unstable: keep the stable run
