@@ -99,8 +99,8 @@ def single_scene_spec(
     from datagen.sampling import sample_scene
     from datagen.spec import MotionSpec
 
-    if lead_in is None:
-        lead_in = round(MotionConfig.lead_in * fps / MotionConfig.fps)
+    if lead_in is None:  # at least a frame: the outfit is fitted to the rest pose
+        lead_in = max(1, round(MotionConfig.lead_in * fps / MotionConfig.fps))
 
     chosen = [x for x in (action, bvh, amass) if x]
     if len(chosen) > 1:
