@@ -126,7 +126,7 @@ def test_dask_cluster_matches_local_processes(tmp_path):
 @pytest.mark.parametrize(
     "patch, field",
     [("  frames: 6", "motion.frames"), ("quality: draft", "simulation.qualty"),
-     ("  full_body_probability: 0.3", "outfit.fabrics.tweed")],
+     ("  full_body_probability: 0.3", "outfit.fabrics.tweed"), ("  lead_in: 3", "motion.lead_in")],
 )
 def test_bad_recipes_fail_before_any_work(tmp_path, patch, field):
     from datagen.pipeline.dataset import run_dataset
@@ -135,6 +135,9 @@ def test_bad_recipes_fail_before_any_work(tmp_path, patch, field):
         "motion.frames": "  frames: -6",
         "simulation.qualty": "qualty: draft",
         "outfit.fabrics.tweed": "  full_body_probability: 0.3\n  fabrics: {tweed: 1}",
+        # The outfit is fitted to the rest pose: without a lead-in it is dropped onto the
+        # motion's first pose (a walking t-shirt ran away at 150 m/s, rejected after 3 runs).
+        "motion.lead_in": "  lead_in: 0",
     }[field])
     recipe = tmp_path / "bad.yaml"
     recipe.write_text(text)

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import trimesh
 
 from datagen.pipeline.stages import run_sequence
@@ -46,6 +47,19 @@ def test_top_straps_stay_on_the_shoulders(body_model):
     neck = record.body.joints[-1, 12]
     drop = (z.max() - record.body.rest.joints[12, 2]) - (last[:, 2].max() - neck[2])
     assert drop < 0.04, f"the top slid {drop * 100:.1f} cm down the body"
+
+
+def test_an_outfit_without_a_lead_in_from_its_rest_pose_is_refused(body_model):
+    """Garments are fitted to the rest body and settle on its frame 0, which is the rest pose
+    only when a lead-in precedes the motion: without one the walking t-shirt was dropped onto
+    the first pose and ran away at 150 m/s on every rung of the escalation."""
+    from datagen.cli import scene_with_outfit, single_scene_spec
+    from datagen.errors import InputError
+
+    spec = scene_with_outfit(single_scene_spec(0, "walk", None, None, 2, None, lead_in=0),
+                             "tshirt", "cotton", 0)
+    with pytest.raises(InputError, match=r"motion\.lead_in.*1 or more frames.*got 0"):
+        run_sequence(spec, body_model)
 
 
 def test_layered_outfit_on_a_run_stays_stable(body_model, repo_dir):

@@ -834,6 +834,9 @@ def simulate(garments: list[Garment], body: BodySequence | ColliderTrack | None,
     if not garments:
         raise InputError(None, "outfit", "at least one garment", "none")
     if isinstance(body, BodySequence):
+        if body.lead_in_frames < 1:  # garments fitted to the rest body start on its frame 0
+            raise InputError(None, "motion.lead_in", "1 or more frames from the rest pose, "
+                             "to which the garments are fitted", body.lead_in_frames)
         return _Simulation(garments, track_of(body), options or SimOptions(),
                            body_start_transform(body)).run()
     return _Simulation(garments, body, options or SimOptions()).run()
