@@ -65,6 +65,10 @@ def test_bad_case_file_names_the_field(tmp_path):
                    "    expect: maybe\n")
     with pytest.raises(InputError, match=r"cases\[0\]\.expect"):
         load_hard_cases(bad)
+    bad.write_text("cases:\n  - name: x\n    why: y\n    garments: [{template: tshirt}]\n"
+                   "    motion: {lead_in: 0}\n")
+    with pytest.raises(InputError, match=r"cases\[0\]\.motion\.lead_in.*1 or more frames"):
+        load_hard_cases(bad)
 
 
 def test_buried_share_sees_cloth_inside_a_part_that_passes_through_another():

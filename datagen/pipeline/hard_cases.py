@@ -67,6 +67,9 @@ class Case:
         if self.expect == "rejected" and not self.reason:
             raise InputError(source, f"{path}.reason", "the words a rejection must contain", "")
         check_range(self.start_inside, 0.0, 0.05, source, f"{path}.start_inside")
+        if self.motion.lead_in < 1:  # as a recipe's motion.lead_in (datagen.recipe)
+            raise InputError(source, f"{path}.motion.lead_in", "1 or more frames from the rest "
+                             "pose, to which the garments are fitted", self.motion.lead_in)
 
 
 @dataclass(frozen=True)
