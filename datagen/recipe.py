@@ -13,6 +13,7 @@ from pathlib import Path
 from datagen.config import check_range, from_mapping, load_yaml
 from datagen.errors import InputError
 from datagen.qa import QA_POLICIES
+from datagen.spec import require_lead_in
 
 
 @dataclass(frozen=True)
@@ -50,13 +51,7 @@ class MotionConfig:
             raise InputError(source, f"{path}.frames", "a positive number of frames", self.frames)
         if self.fps <= 0:
             raise InputError(source, f"{path}.fps", "a positive frame rate", self.fps)
-        if self.lead_in < 1:
-            # The outfit is fitted to the rest pose and settles there; the lead-in carries it
-            # into the motion's first pose. With none it is dropped onto that pose: a walking
-            # t-shirt ran away at 150 m/s and was rejected after three runs.
-            raise InputError(source, f"{path}.lead_in",
-                             "1 or more frames from the rest pose, to which the outfit is "
-                             "fitted, into the motion's first frame", self.lead_in)
+        require_lead_in(self.lead_in, source, f"{path}.lead_in")  # every recipe dresses
         check_range(self.mirror_probability, 0.0, 1.0, source, f"{path}.mirror_probability")
         for name, w in self.sources.items():
             if name not in ("procedural", "bvh", "amass"):

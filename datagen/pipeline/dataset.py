@@ -249,6 +249,7 @@ def write_card(out: Path, loaded: LoadedRecipe, rows: list[dict], wall: float | 
 
     size = sum(p.stat().st_size for p in out.glob(SHARD_GLOB))
     frames = sum(r["frames"] for r in ok)
+    fps = loaded.recipe.motion.fps
     qa_deep = max((r["qa"].get("deep_share", 0.0) for r in ok), default=0.0)
     qa_strain = max((r["qa"].get("strain_p999", 0.0) for r in ok), default=0.0)
     qa_over = max((r["qa"].get("over_strain_share", 0.0) for r in ok), default=0.0)
@@ -262,7 +263,7 @@ def write_card(out: Path, loaded: LoadedRecipe, rows: list[dict], wall: float | 
         "",
         f"- sequences: {len(ok)} finished, {len(rejected)} rejected, of "
         f"{loaded.recipe.sequences} in the recipe",
-        f"- frames: {frames} ({frames / 30.0:.0f} s at 30 fps)",
+        f"- frames: {frames} ({frames / fps:.1f} s at {fps:g} fps)",
         f"- storage: {size / 2**20:.1f} MiB in {len(list(out.glob(SHARD_GLOB)))} shards",
         f"- compute: {compute / 60:.1f} min of sequence work"
         + (f"; this run took {wall / 60:.1f} min on {workers} worker(s), "

@@ -20,7 +20,15 @@ import numpy as np
 from datagen.config import check_range, from_mapping, load_yaml
 from datagen.errors import InputError
 from datagen.qa import DEEP_SHARE_MAX, STRAIN_SHARE_MAX  # per frame after the lead-in
-from datagen.spec import GarmentSpec, MotionSpec, OutfitSpec, SceneSpec, SimSpec, SubjectSpec
+from datagen.spec import (
+    GarmentSpec,
+    MotionSpec,
+    OutfitSpec,
+    SceneSpec,
+    SimSpec,
+    SubjectSpec,
+    require_lead_in,
+)
 from datagen.types import BodySequence, Garment, Motion
 
 # Kinetic energy per kilogram of cloth: the cloth moves with a body whose limbs reach about
@@ -67,9 +75,7 @@ class Case:
         if self.expect == "rejected" and not self.reason:
             raise InputError(source, f"{path}.reason", "the words a rejection must contain", "")
         check_range(self.start_inside, 0.0, 0.05, source, f"{path}.start_inside")
-        if self.motion.lead_in < 1:  # as a recipe's motion.lead_in (datagen.recipe)
-            raise InputError(source, f"{path}.motion.lead_in", "1 or more frames from the rest "
-                             "pose, to which the garments are fitted", self.motion.lead_in)
+        require_lead_in(self.motion.lead_in, source, f"{path}.motion.lead_in")
 
 
 @dataclass(frozen=True)

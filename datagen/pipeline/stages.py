@@ -151,10 +151,10 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
     already (in a batch, datagen.pipeline.batched), which is then judged instead of simulating
     again."""
     from datagen import qa
-    from datagen.sim.simulate import PRESET_FPS, simulate
+    from datagen.sim.simulate import output_fps, simulate
 
     dropped: list[dict] = []  # the runs not kept: settings, reason, wall time
-    fps = body.fps if body is not None else PRESET_FPS
+    fps = output_fps(body)
     current, outcome = options, first
     while True:
         up = next_rung(current, fps)

@@ -25,6 +25,7 @@ from datagen.sim.fold_fields import FoldFields, JoinedFoldFields
 from datagen.sim.model import ClothModel, build_cloth_model
 from datagen.sim.progress import report_frame
 from datagen.sim.solvers import SolverSettings, make_solver
+from datagen.spec import require_lead_in
 from datagen.types import BodySequence, Garment, SimResult
 
 # Quality presets per solver: substeps per frame at PRESET_FPS and iterations
@@ -89,6 +90,11 @@ SPEED_LIMIT = 15.0  # m/s: a cloth vertex faster than this and 3x the body's fas
 # vertices at 5-10 m/s, which the absolute guards let through.
 ENERGY_SLACK = 2.0
 ENERGY_FLOOR_SPEED = 0.1  # m/s
+
+
+def output_fps(body: BodySequence | ColliderTrack | None) -> float:
+    """The output rate of a simulation on `body` (PRESET_FPS in free space)."""
+    return body.fps if body is not None else PRESET_FPS
 
 
 def _rate_ratio(fps: float) -> float:
@@ -465,7 +471,7 @@ class _Simulation:
             self.model.x0 = self.model.x0 @ rot.T + shift
         content = scene_content(garments, body is not None, options.wind, self.fabrics)
         self.effects: Effects = resolve_effects(options.effects, content)
-        self.fps = body.fps if body is not None else PRESET_FPS
+        self.fps = output_fps(body)
         self.substeps, self.iterations = options.resolve_steps(self.fps)
         self.search_every = interval_at(self.fps, options.search_every)
         self.refine_rest_frames = interval_at(self.fps, REFINE_REST)
@@ -834,9 +840,7 @@ def simulate(garments: list[Garment], body: BodySequence | ColliderTrack | None,
     if not garments:
         raise InputError(None, "outfit", "at least one garment", "none")
     if isinstance(body, BodySequence):
-        if body.lead_in_frames < 1:  # garments fitted to the rest body start on its frame 0
-            raise InputError(None, "motion.lead_in", "1 or more frames from the rest pose, "
-                             "to which the garments are fitted", body.lead_in_frames)
+        require_lead_in(body.lead_in_frames, None, "motion.lead_in")
         return _Simulation(garments, track_of(body), options or SimOptions(),
                            body_start_transform(body)).run()
     return _Simulation(garments, body, options or SimOptions()).run()
