@@ -114,6 +114,32 @@ def test_ungrounded_exception_is_the_raw_capture(cmu_imports):
         assert np.percentile(lowest, 95) - np.percentile(lowest, 5) > 0.15
 
 
+CLAVICLES = ("leftshoulder", "rightshoulder", "lclavicle", "rclavicle", "lcollar", "rcollar")
+
+
+def test_cmu_shoulders_sit_where_the_reference_skeleton_puts_them(cmu_imports):
+    """The clips' clavicle channels are all zero (to 1e-13 degrees), so in every frame each
+    shoulder sits at its reference offset from the chest (spine3). Until 2026-12-04 the collars
+    were calibrated by their bones' rest directions, and the MotionBuilder and ASF clips, whose
+    clavicles are drawn 14-20 degrees up, held their shoulders 6-7 cm too high for their whole
+    length (a leather dress's straps then broke the strain bound on every frame); the Daz ones
+    about 1.5 cm too low."""
+    rest = REFERENCE_REST_JOINTS
+    spine3 = JOINT_INDEX["spine3"]
+    for name, (_, clip, motion) in cmu_imports.items():
+        clavicles = [j for j, n in enumerate(clip.names) if n.lower() in CLAVICLES]
+        assert len(clavicles) == 2, name
+        for j in clavicles:
+            start = clip.channel_start[j]
+            assert np.abs(clip.frames[:, start:start + len(clip.channels[j])]).max() < 1e-9, name
+        world, joints = canonical_fk(motion.poses, motion.trans, rest)
+        for side in ("left", "right"):
+            j = JOINT_INDEX[f"{side}_shoulder"]
+            in_chest = np.einsum("fji,fj->fi", world[:, spine3], joints[:, j] - joints[:, spine3])
+            off = np.abs(in_chest - (rest[j] - rest[spine3])).max()
+            assert off < 1e-3, (name, side, off)
+
+
 def test_import_speed(cmu_dir: Path):
     """Importing a long clip (2397 frames, 316k channel values) costs at most 15 times reading
     its numbers with numpy, the least any importer does, measured in the same run (measured
@@ -184,8 +210,10 @@ def bvh_text(
     a_pose: bool = False,
     frame_time: str = "0.0333333",
     joint_positions: bool = False,
+    clavicle_lift: float = 0.0,
 ) -> str:
-    """A BVH file of the T_POSE skeleton (or its A-pose variant), local rotations per frame."""
+    """A BVH file of the T_POSE skeleton (or its A-pose variant), local rotations per frame;
+    `clavicle_lift` (degrees) draws the clavicle bones that far up from flat, as CMU's are."""
     rename = names or {}
     kids: dict[str | None, list[str]] = {}
     for n, p, _ in T_POSE:
@@ -197,6 +225,8 @@ def bvh_text(
             offsets[n] = (Q_LEFT if n.startswith("Left") else Q_RIGHT).apply(offsets[n])
         ends["LeftHand"] = Q_LEFT.apply(ends["LeftHand"])
         ends["RightHand"] = Q_RIGHT.apply(ends["RightHand"])
+    for n, sign in (("LeftArm", 1.0), ("RightArm", -1.0)):
+        offsets[n] = Rotation.from_euler("z", sign * clavicle_lift, degrees=True).apply(offsets[n])
     rot_channels = " ".join(f"{a}rotation" for a in order)
     lines = ["HIERARCHY"]
 
@@ -286,7 +316,8 @@ def test_golden_elbow_bend(tmp_path: Path):
     np.testing.assert_allclose(p[1, JOINT_INDEX["left_elbow"]], [0, np.pi / 2, 0], atol=1e-6)
     np.testing.assert_allclose(p[1, JOINT_INDEX["right_elbow"]], [0, 0, np.pi / 6], atol=1e-6)
     # The arms of this skeleton are canonical T-pose arms: at rest the joints below the shoulders
-    # are zero (the shoulders are not: this collar bone is flatter than the reference one).
+    # are zero (the shoulders are not: they undo the chest's calibration, this spine being
+    # straighter than the reference one).
     for j in ("left_elbow", "left_wrist", "right_elbow", "right_wrist"):
         np.testing.assert_allclose(p[0, JOINT_INDEX[j]], 0.0, atol=1e-9)
     # Nothing else moved.
@@ -307,6 +338,30 @@ def test_golden_elbow_bend(tmp_path: Path):
         Rotation.from_euler("z", 90, degrees=True).as_matrix(),
         atol=1e-6,
     )
+
+
+def test_a_collar_follows_its_clavicle_from_the_bvh_rest_pose(tmp_path: Path):
+    """However the skeleton draws its clavicle bones (flat, or 20 degrees up as CMU's are), a
+    collar is neutral at the BVH rest pose and turns as far as its clavicle turns from it: a
+    15 degree shrug of the left clavicle raises the left shoulder about 3.8 cm (0.143 m of
+    reference collar, from 6.3 degrees down to 8.7 up) and moves nothing else."""
+    frames = [{}, {"LeftShoulder": Rotation.from_euler("z", 15, degrees=True)}]
+    root = np.array([[0.0, 95.0, 0.0], [0.0, 95.0, 0.0]])
+    motions = [load_bvh(write(tmp_path, f"lift{lift}.bvh",
+                              bvh_text(frames, root, clavicle_lift=lift)))
+               for lift in (0.0, 20.0)]
+    assert same_rotations(motions[0].poses, motions[1].poses)
+    for motion in motions:
+        p = motion.poses.reshape(2, 24, 3)
+        for side in ("left", "right"):
+            np.testing.assert_allclose(p[0, JOINT_INDEX[f"{side}_collar"]], 0.0, atol=1e-9)
+        np.testing.assert_allclose(np.linalg.norm(p[1, JOINT_INDEX["left_collar"]]),
+                                   np.radians(15), atol=1e-6)
+        np.testing.assert_allclose(p[1, JOINT_INDEX["right_collar"]], 0.0, atol=1e-9)
+        _, joints = canonical_fk(motion.poses, motion.trans, REFERENCE_REST_JOINTS)
+        rise = joints[1, :, 2] - joints[0, :, 2]
+        assert 0.036 < rise[JOINT_INDEX["left_shoulder"]] < 0.040
+        np.testing.assert_allclose(rise[JOINT_INDEX["right_shoulder"]], 0.0, atol=1e-9)
 
 
 def test_a_pose_rest_gives_the_same_world_arms_as_t_pose(tmp_path: Path):

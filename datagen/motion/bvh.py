@@ -40,7 +40,10 @@ only child). C_j = rotation_between(d_j, o_b) and the canonical world rotation i
 G_j(t) = A W_b(t) A^T C_j, with A the change of axes BVH (x, y, z) -> ours (x, -z, y) (CMU BVH are
 y-up, facing +z, the body's left at +x). So the result does not depend on whether the BVH rest
 pose is a T-pose. `skeleton.world_to_local` turns the world rotations G into canonical poses
-(whatever axes the canonical child rotations are expressed in). Where b has no usable direction
+(whatever axes the canonical child rotations are expressed in). The collars are the exception
+(REST_NEUTRAL): a clavicle's rest direction is how the skeleton was drawn, so C_j for them is
+the chest's, and a collar is neutral where the BVH's clavicle is at rest (the shared CMU clips'
+clavicle channels are all zero). Where b has no usable direction
 (e.g. Daz's head, whose only children are the eyes), C_j is the rest rotation of j's nearest
 mapped ancestor: the joint is neutral relative to it when the BVH is at rest.
 
@@ -240,6 +243,13 @@ def _primary_children() -> tuple[int | None, ...]:
 
 
 _PRIMARY_CHILD = _primary_children()
+
+# Joints whose BVH rest pose is their neutral pose, not a direction to match. A clavicle bone's
+# rest direction is how the skeleton was drawn, not a pose: CMU's (MotionBuilder and ASF) runs
+# from the neck's base 14-20 degrees up to the shoulder, Daz's from the chest 12 down, the
+# reference collar's 6 down, each in a T-pose. Matched by direction, every CMU MotionBuilder and
+# ASF clip held its shoulders shrugged 6-7 cm for its whole length.
+REST_NEUTRAL = frozenset({"left_collar", "right_collar"})
 
 # Heights above the soles, in the reference T-pose, of the joints the sole estimate uses.
 _SOLE_JOINTS = np.array(
@@ -652,38 +662,43 @@ def _descend_direction(clip: BvhClip, rest: np.ndarray, b: int, eps: float) -> n
         return None
 
 
+def _segment_directions(clip: BvhClip, mapping: dict[int, int], rest: np.ndarray, j: int,
+                        eps: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Canonical joint j's segment: its canonical rest direction and the BVH rest direction of
+    the same segment (towards the BVH joint mapped to j's first mapped canonical descendant off
+    j's BVH joint, else down the BVH chain from it), or None where the BVH gives none."""
+    b = mapping[j]
+    c = _PRIMARY_CHILD[j]
+    while c is not None:  # down the canonical chain to the first mapped joint off b
+        if c in mapping and np.linalg.norm(rest[mapping[c]] - rest[b]) > eps:
+            return REFERENCE_REST_JOINTS[c] - REFERENCE_REST_JOINTS[j], rest[mapping[c]] - rest[b]
+        c = _PRIMARY_CHILD[c]
+    o = _descend_direction(clip, rest, b, eps)
+    if o is None:
+        return None
+    child = _PRIMARY_CHILD[j]
+    d = (np.array(_LEAF_DIRECTIONS[JOINT_NAMES[j]]) if child is None
+         else REFERENCE_REST_JOINTS[child] - REFERENCE_REST_JOINTS[j])
+    return d, o
+
+
 def _calibrations(clip: BvhClip, mapping: dict[int, int]) -> dict[int, np.ndarray]:
-    """C_j for every mapped canonical joint: canonical rest direction -> BVH rest direction."""
+    """C_j for every mapped canonical joint: canonical rest direction -> BVH rest direction;
+    for the collars (REST_NEUTRAL) and joints whose segment the BVH does not give, neutral
+    relative to the nearest mapped ancestor at the BVH rest pose."""
     rest = clip.rest_positions()
     eps = 1e-6 * max(float(np.abs(clip.offsets).max()), 1e-12)
     calib: dict[int, np.ndarray] = {}
     for j in sorted(mapping):
-        b = mapping[j]
-        d = o = None
-        c = _PRIMARY_CHILD[j]
-        while c is not None:  # down the canonical chain to the first mapped joint off b
-            if c in mapping and np.linalg.norm(rest[mapping[c]] - rest[b]) > eps:
-                d = REFERENCE_REST_JOINTS[c] - REFERENCE_REST_JOINTS[j]
-                o = rest[mapping[c]] - rest[b]
-                break
-            c = _PRIMARY_CHILD[c]
-        if o is None:
-            v = _descend_direction(clip, rest, b, eps)
-            if v is not None:
-                o = v
-                child = _PRIMARY_CHILD[j]
-                d = (
-                    np.array(_LEAF_DIRECTIONS[JOINT_NAMES[j]])
-                    if child is None
-                    else REFERENCE_REST_JOINTS[child] - REFERENCE_REST_JOINTS[j]
-                )
-        if o is not None and d is not None:
+        segment = None
+        if JOINT_NAMES[j] not in REST_NEUTRAL:
+            segment = _segment_directions(clip, mapping, rest, j, eps)
+        if segment is not None:
+            d, o = segment
             calib[j] = rotation_between(d, BVH_TO_WORLD @ o)
+        elif j == 0:
+            calib[j] = np.eye(3)
         else:
-            # Neutral relative to the nearest mapped ancestor at the BVH rest pose.
-            if j == 0:
-                calib[j] = np.eye(3)
-                continue
             a = PARENTS[j]
             while a not in mapping:
                 a = PARENTS[a]
