@@ -9,7 +9,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from datagen.errors import InputError
-from datagen.motion.bvh import detect_convention, load_bvh, lowest_sole_height, parse_bvh
+from datagen.motion.bvh import (
+    JOINT_MAPS,
+    detect_convention,
+    load_bvh,
+    lowest_sole_height,
+    parse_bvh,
+)
 from datagen.skeleton import JOINT_INDEX, REFERENCE_PELVIS_HEIGHT, REFERENCE_REST_JOINTS
 from datagen.skeleton import forward_kinematics as canonical_fk
 
@@ -114,7 +120,9 @@ def test_ungrounded_exception_is_the_raw_capture(cmu_imports):
         assert np.percentile(lowest, 95) - np.percentile(lowest, 5) > 0.15
 
 
-CLAVICLES = ("leftshoulder", "rightshoulder", "lclavicle", "rclavicle", "lcollar", "rcollar")
+# The clavicle joints of every convention, as the importer maps them to the collars.
+CLAVICLES = {name.lower() for joints in JOINT_MAPS.values()
+             for collar in ("left_collar", "right_collar") for name in joints[collar]}
 
 
 def test_cmu_shoulders_sit_where_the_reference_skeleton_puts_them(cmu_imports):
@@ -344,7 +352,7 @@ def test_a_collar_follows_its_clavicle_from_the_bvh_rest_pose(tmp_path: Path):
     """However the skeleton draws its clavicle bones (flat, or 20 degrees up as CMU's are), a
     collar is neutral at the BVH rest pose and turns as far as its clavicle turns from it: a
     15 degree shrug of the left clavicle raises the left shoulder about 3.8 cm (0.143 m of
-    reference collar, from 6.3 degrees down to 8.7 up) and moves nothing else."""
+    reference collar, from 6.3 degrees down to 8.7 up) and leaves the right one where it was."""
     frames = [{}, {"LeftShoulder": Rotation.from_euler("z", 15, degrees=True)}]
     root = np.array([[0.0, 95.0, 0.0], [0.0, 95.0, 0.0]])
     motions = [load_bvh(write(tmp_path, f"lift{lift}.bvh",

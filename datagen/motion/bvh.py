@@ -40,12 +40,12 @@ only child). C_j = rotation_between(d_j, o_b) and the canonical world rotation i
 G_j(t) = A W_b(t) A^T C_j, with A the change of axes BVH (x, y, z) -> ours (x, -z, y) (CMU BVH are
 y-up, facing +z, the body's left at +x). So the result does not depend on whether the BVH rest
 pose is a T-pose. `skeleton.world_to_local` turns the world rotations G into canonical poses
-(whatever axes the canonical child rotations are expressed in). The collars are the exception
-(REST_NEUTRAL): a clavicle's rest direction is how the skeleton was drawn, so C_j for them is
-the chest's, and a collar is neutral where the BVH's clavicle is at rest (the shared CMU clips'
-clavicle channels are all zero). Where b has no usable direction
-(e.g. Daz's head, whose only children are the eyes), C_j is the rest rotation of j's nearest
-mapped ancestor: the joint is neutral relative to it when the BVH is at rest.
+(whatever axes the canonical child rotations are expressed in). Where b has no usable
+direction (e.g. Daz's head, whose only children are the eyes), C_j is the rest rotation of j's
+nearest mapped ancestor: the joint is neutral relative to it when the BVH is at rest. The collars
+(REST_NEUTRAL) take that rule too, whatever their bones' directions: a clavicle's rest direction
+is how the skeleton was drawn, not a pose, so a collar is neutral relative to the chest where
+the BVH's clavicle is at rest (the shared CMU clips' clavicle channels are all zero).
 
 Frames: cgspeed MotionBuilder-friendly files start with an added T-pose frame. It is detected
 from its content (root rotation zero, every rotation channel a whole number of degrees within
