@@ -19,6 +19,16 @@ DEEP_SHARE_MAX = 0.01  # share of garment vertices deeper in the body than the f
 # and the dataset's gate, the hard cases and validation judge by it.
 STRAIN_SHARE_MAX = 0.001
 QA_POLICIES = ("reject", "keep")  # what a dataset run does with a sequence over a bound
+# How much farther from the neck joint than where it was fitted a garment's neckline may lie
+# (metres, the 90th percentile of its vertices): past it the garment has slid off the
+# shoulders. Measured on the 73 garments with a neckline in make dataset's sequences, five more
+# seeds of its recipe and four sequences of the CLOTH3D recipe (2026-12-04): worn ones reach at
+# most 11 cm, a loose top's edge flapping in a jump 15; a denim dress's strap at the edge of
+# the shoulder in a spin and an open shirt half off one shoulder 15-16 (these pass: the bound
+# catches garments off the shoulders, not every strap that slides); a cropped polo's collar
+# pulled off one shoulder by a spin 22, and open shirts and strap jumpsuits off both
+# shoulders, hanging at the elbows, 24-34.
+NECKLINE_SLIP_MAX = 0.20
 
 
 @dataclass(frozen=True)
@@ -82,6 +92,36 @@ def buried_share(cloth: np.ndarray, thickness: np.ndarray, body: np.ndarray,
         deep = sd < -thickness
         out[f] = max(float(np.mean(deep[lo:hi])) for lo, hi in groups)
     return out
+
+
+def neckline_slip(neckline: np.ndarray, fitted: np.ndarray, neck: np.ndarray,
+                  fitted_neck: np.ndarray) -> np.ndarray:
+    """(F,) per frame, how much farther from the neck joint a garment's neckline lies than where
+    it was fitted: the 90th percentile over the neckline's vertices of each one's distance to
+    the joint less its distance in the fit. A distance to one joint does not depend on how the
+    body turns or moves, so a neckline that rides on the shoulders stays within a few
+    centimetres (the shoulders' skin moves as the arms go from the fit's T-pose to the
+    motion's); one that slides off the shoulders moves 20-35 cm away.
+
+    `neckline` (F, L, 3) the neckline's vertices at the output frames, `fitted` (L, 3) the same
+    vertices as fitted to the rest body, `neck` (F, 3) the neck joint at those frames and
+    `fitted_neck` (3,) the rest body's."""
+    neckline = np.asarray(neckline, dtype=np.float64)
+    fitted = np.asarray(fitted, dtype=np.float64)
+    neck = np.asarray(neck, dtype=np.float64)
+    if (neckline.ndim != 3 or neckline.shape[2] != 3 or fitted.shape != neckline.shape[1:]
+            or neck.shape != (neckline.shape[0], 3) or np.shape(fitted_neck) != (3,)):
+        raise ValueError(f"neckline_slip: neckline {neckline.shape} (F, L, 3), fitted "
+                         f"{fitted.shape} (L, 3), neck {neck.shape} (F, 3) and fitted_neck "
+                         f"{np.shape(fitted_neck)} (3,) must match")
+    now = np.linalg.norm(neckline - neck[:, None, :], axis=2)
+    then = np.linalg.norm(fitted - np.asarray(fitted_neck, dtype=np.float64), axis=1)
+    return np.percentile(now - then[None, :], 90, axis=1)
+
+
+def neckline_slip_what(category: str) -> str:
+    """A neckline breach in words (Breach.what), shared by the dataset's gate and validate."""
+    return f"the {category}'s neckline slid off the shoulders"
 
 
 def breaches(series: Mapping[str, np.ndarray]) -> list[Breach]:

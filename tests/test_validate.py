@@ -396,6 +396,69 @@ def test_qa_gate_judges_cloth_by_the_bodys_volume_where_a_joint_was_flexed():
     assert buried_at(4, [6, 7]).status == "ok"
 
 
+def test_neckline_slip_measures_how_far_a_neckline_left_the_neck():
+    """qa.neckline_slip, checked by hand: a ring of radius 10 cm around the neck joint at its
+    height lies 10 cm from it; dropped 25 cm down the body it lies sqrt(0.1^2 + 0.25^2) =
+    26.93 cm away, 16.93 cm farther, at every vertex. A ring that turns and travels with the
+    joint (a body walking and turning in its neckline) has not slipped at all."""
+    from datagen.qa import neckline_slip
+
+    angle = np.linspace(0.0, 2.0 * np.pi, 24, endpoint=False)
+    ring = np.stack([0.1 * np.cos(angle), 0.1 * np.sin(angle), np.zeros(24)], axis=1)
+    neck = np.array([0.0, 0.0, 1.45])
+    frames = np.stack([ring + neck, ring + neck - [0.0, 0.0, 0.25]])
+    slip = neckline_slip(frames, ring + neck, np.stack([neck, neck]), neck)
+    assert slip == pytest.approx([0.0, 0.169258], abs=1e-6)
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    moved = np.array([2.0, -1.0, 0.05])
+    carried = neckline_slip((ring @ turn.T + neck + moved)[None], ring + neck,
+                            (neck + moved)[None], neck)
+    assert carried == pytest.approx([0.0], abs=1e-9)
+    with pytest.raises(ValueError, match="must match"):
+        neckline_slip(frames, ring[:5], np.stack([neck, neck]), neck)
+
+
+def test_qa_gate_rejects_a_garment_that_slid_off_the_shoulders():
+    """A neckline that has left the neck (an open shirt sliding down the arms: the sweeps of
+    2026-12-04 found such sequences written as valid) is rejected by the gate, naming the
+    garment, the value, the frame and the bound; the same neckline riding on the body is not."""
+    from datagen.pipeline.stages import reject_over_qa_bounds
+
+    made = sf.make_record(1)
+    record = made.record
+    upper = record.sim.vertices["upper"]
+    neckline = record.garments[0].loops["neck"]
+    # Off to one side: the synthetic body's neck joint lies 0.57 m below this neckline (its
+    # joints are spread evenly up the body), so a 0.6 m move takes it 0.2-0.4 m farther away.
+    upper[6, neckline, 0] += 0.6
+    rejected = reject_over_qa_bounds(record)
+    assert rejected.status == "rejected" and rejected.stage == "qa"
+    assert rejected.frames == (6, 6)
+    assert rejected.reason.startswith(
+        "the tshirt's neckline slid off the shoulders (qa/neckline_slip 0."), rejected.reason
+    assert rejected.reason.endswith("at frame 6, bound 0.2)"), rejected.reason
+    within = sf.make_record(1).record
+    assert reject_over_qa_bounds(within) is within
+
+
+def test_validate_finds_a_garment_that_slid_off_the_shoulders(tmp_path):
+    """A shard written with the gate off (`qa: keep`) that holds a garment off the shoulders
+    fails validation with the gate's bound, judged from the stored frames (quantised ones
+    decoded), and passes with `--qa warning`, which reports it as a warning."""
+    made = sf.make_record(1)
+    record = made.record
+    record.sim.vertices["upper"][6, record.garments[0].loops["neck"], 0] += 0.6  # see above
+    for quantize in (False, True):
+        path = sf.write_shard(tmp_path / f"slip-{quantize}.h5", [record], quantize=quantize)
+        (problem,) = validate(path)
+        assert problem.message.startswith(
+            "garments/upper: qa/neckline_slip reaches 0."), problem.message
+        assert problem.message.endswith(
+            "at frame 6 (the tshirt's neckline slid off the shoulders; bound 0.2)")
+        (warning,) = validate(path, qa="warning")
+        assert warning.severity == "warning"
+
+
 def test_recipe_qa_policy_is_checked(tmp_path):
     from datagen.errors import InputError
     from datagen.recipe import load_recipe

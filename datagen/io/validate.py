@@ -24,6 +24,7 @@ from datagen.io.shard import (
     SHARD_SUFFIX,
     TMP_SUFFIX,
     h5py_reason,
+    read_positions,
     unreadable_reason,
 )
 
@@ -435,6 +436,41 @@ class _SequenceCheck:
                 self.error(f"qa/{name}: negative value {v.min():.4g}", self.qa)
         for breach in qa_bounds.breaches(series):
             self.error(str(breach), self.qa)
+        self.neckline_slips(g)
+
+    def neckline_slips(self, g: h5py.Group) -> None:
+        """The gate's neckline bound (stages.slipped_necklines), judged again from the stored
+        frames: each garment with a neckline against the body's neck joint. Missing or
+        misshapen arrays are reported by the structural checks, not here."""
+        from datagen.skeleton import JOINT_NAMES
+
+        body, garments = g.get("body"), g.get("garments")
+        if not isinstance(body, h5py.Group) or not isinstance(garments, h5py.Group):
+            return
+        neck = JOINT_NAMES.index("neck")
+        joints, rest = _read(body.get("joints")), _read(body.get("rest_joints"))
+        if joints is None or rest is None or joints.ndim != 3 or rest.ndim != 2:
+            return
+        for name in sorted(garments):
+            garment = garments[name]
+            loops = garment.get("loops")
+            if (not isinstance(loops, h5py.Group) or "neck" not in loops
+                    or "vertices" not in garment or "start_vertices" not in garment):
+                continue
+            try:
+                loop = np.asarray(loops["neck"][()], dtype=np.int64)
+                slip = qa_bounds.neckline_slip(
+                    read_positions(garment, "vertices")[:, loop],
+                    garment["start_vertices"][()][loop], joints[:, neck], rest[neck])
+            except (ValueError, IndexError):
+                continue
+            k = int(np.argmax(slip))
+            if slip[k] > qa_bounds.NECKLINE_SLIP_MAX:
+                breach = qa_bounds.Breach("neckline_slip", float(slip[k]), k,
+                                          qa_bounds.NECKLINE_SLIP_MAX,
+                                          qa_bounds.neckline_slip_what(
+                                              str(_attr(garment, "category", name))))
+                self.error(f"garments/{name}: {breach}", self.qa)
 
     def check_fabric_parameters(self, g: h5py.Group) -> None:
         """Each garment's fabric as simulated (@fabric_parameters, absent in shards written

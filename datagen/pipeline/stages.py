@@ -226,7 +226,8 @@ def over_qa_bounds(record: SequenceRecord,
 
     if record.status != "ok" or record.sim is None or not record.garments:
         return [], ""
-    found = qa.breaches(record.sim.qa) + buried_at_flexed_joints(record, fabrics)
+    found = (qa.breaches(record.sim.qa) + buried_at_flexed_joints(record, fabrics)
+             + slipped_necklines(record))
     if not found:
         return [], ""
     return found, "; ".join(b.reason for b in found) + flexion_overlap_note(
@@ -279,6 +280,39 @@ def buried_at_flexed_joints(record: SequenceRecord,
     return [Breach("buried_share", float(share[k]), int(frames[k]), qa.DEEP_SHARE_MAX,
                    "cloth inside the body's volume deeper than its thickness where skinning "
                    "sank its parts into each other")]
+
+
+def slipped_necklines(record: SequenceRecord) -> list[Breach]:
+    """The garments whose neckline slid off the shoulders (qa.neckline_slip over
+    qa.NECKLINE_SLIP_MAX in an output frame), each with its worst frame. A loose open shirt or a
+    strap jumpsuit can slide off a moving body and hang at the elbows: physically possible,
+    but not the worn garment a dataset's sequence is meant to show, and no other bound sees it
+    (docs/simulator.md, "Garments that slide off")."""
+    from datagen import qa
+    from datagen.qa import Breach
+    from datagen.skeleton import JOINT_NAMES
+
+    body = record.body
+    joints = getattr(body, "joints", None)
+    if joints is None:
+        return []
+    neck = JOINT_NAMES.index("neck")
+    lead_in = int(body.lead_in_frames)
+    found = []
+    for g in record.garments:
+        loop = g.loops.get("neck")
+        if loop is None or len(loop) == 0:
+            continue
+        loop = np.asarray(loop, dtype=np.int64)
+        frames = record.sim.vertices[g.name][:, loop]
+        slip = qa.neckline_slip(frames, g.vertices[loop],
+                                joints[lead_in:lead_in + len(frames), neck],
+                                body.rest.joints[neck])
+        k = int(np.argmax(slip))
+        if slip[k] > qa.NECKLINE_SLIP_MAX:
+            found.append(Breach("neckline_slip", float(slip[k]), k, qa.NECKLINE_SLIP_MAX,
+                                qa.neckline_slip_what(g.category)))
+    return found
 
 
 def flexion_overlap_note(body: BodySequence | None, frames: list[int]) -> str:
