@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from datagen.skeleton import JOINT_NAMES
+
 DEEP_SHARE_MAX = 0.01  # share of garment vertices deeper in the body than the fabric thickness
 # The bound on stretch: at most this share of the fabric springs beyond their own fabric's
 # max_strain in a frame (99.9 % within it). The simulator redoes frames over it (datagen.sim),
@@ -29,6 +31,7 @@ QA_POLICIES = ("reject", "keep")  # what a dataset run does with a sequence over
 # pulled off one shoulder by a spin 22, and open shirts and strap jumpsuits off both
 # shoulders, hanging at the elbows, 24-34.
 NECKLINE_SLIP_MAX = 0.20
+NECK_JOINT = JOINT_NAMES.index("neck")  # the joint a neckline is measured from
 
 
 @dataclass(frozen=True)
@@ -119,9 +122,17 @@ def neckline_slip(neckline: np.ndarray, fitted: np.ndarray, neck: np.ndarray,
     return np.percentile(now - then[None, :], 90, axis=1)
 
 
-def neckline_slip_what(category: str) -> str:
-    """A neckline breach in words (Breach.what), shared by the dataset's gate and validate."""
-    return f"the {category}'s neckline slid off the shoulders"
+def neckline_breach(neckline: np.ndarray, fitted: np.ndarray, neck: np.ndarray,
+                    fitted_neck: np.ndarray, category: str) -> Breach | None:
+    """A garment's neckline_slip over NECKLINE_SLIP_MAX, at its worst frame, or None: the one
+    verdict of the dataset's gate (stages.slipped_necklines) and of validate. Arguments as
+    neckline_slip's; `category` names the garment in the reason."""
+    slip = neckline_slip(neckline, fitted, neck, fitted_neck)
+    k = int(np.argmax(slip))
+    if slip[k] <= NECKLINE_SLIP_MAX:
+        return None
+    return Breach("neckline_slip", float(slip[k]), k, NECKLINE_SLIP_MAX,
+                  f"the {category}'s neckline slid off the shoulders")
 
 
 def breaches(series: Mapping[str, np.ndarray]) -> list[Breach]:

@@ -418,20 +418,22 @@ def test_neckline_slip_measures_how_far_a_neckline_left_the_neck():
         neckline_slip(frames, ring[:5], np.stack([neck, neck]), neck)
 
 
+def _slipped_record():
+    """A synthetic sequence whose t-shirt's neckline is off to one side at frame 6: the
+    synthetic body's neck joint lies 0.57 m below that neckline (its joints are spread evenly
+    up the body), so a 0.6 m move takes it 0.2-0.4 m farther away."""
+    record = sf.make_record(1).record
+    record.sim.vertices["upper"][6, record.garments[0].loops["neck"], 0] += 0.6
+    return record
+
+
 def test_qa_gate_rejects_a_garment_that_slid_off_the_shoulders():
     """A neckline that has left the neck (an open shirt sliding down the arms: the sweeps of
     2026-12-04 found such sequences written as valid) is rejected by the gate, naming the
     garment, the value, the frame and the bound; the same neckline riding on the body is not."""
     from datagen.pipeline.stages import reject_over_qa_bounds
 
-    made = sf.make_record(1)
-    record = made.record
-    upper = record.sim.vertices["upper"]
-    neckline = record.garments[0].loops["neck"]
-    # Off to one side: the synthetic body's neck joint lies 0.57 m below this neckline (its
-    # joints are spread evenly up the body), so a 0.6 m move takes it 0.2-0.4 m farther away.
-    upper[6, neckline, 0] += 0.6
-    rejected = reject_over_qa_bounds(record)
+    rejected = reject_over_qa_bounds(_slipped_record())
     assert rejected.status == "rejected" and rejected.stage == "qa"
     assert rejected.frames == (6, 6)
     assert rejected.reason.startswith(
@@ -445,9 +447,7 @@ def test_validate_finds_a_garment_that_slid_off_the_shoulders(tmp_path):
     """A shard written with the gate off (`qa: keep`) that holds a garment off the shoulders
     fails validation with the gate's bound, judged from the stored frames (quantised ones
     decoded), and passes with `--qa warning`, which reports it as a warning."""
-    made = sf.make_record(1)
-    record = made.record
-    record.sim.vertices["upper"][6, record.garments[0].loops["neck"], 0] += 0.6  # see above
+    record = _slipped_record()
     for quantize in (False, True):
         path = sf.write_shard(tmp_path / f"slip-{quantize}.h5", [record], quantize=quantize)
         (problem,) = validate(path)

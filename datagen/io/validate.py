@@ -442,12 +442,10 @@ class _SequenceCheck:
         """The gate's neckline bound (stages.slipped_necklines), judged again from the stored
         frames: each garment with a neckline against the body's neck joint. Missing or
         misshapen arrays are reported by the structural checks, not here."""
-        from datagen.skeleton import JOINT_NAMES
-
         body, garments = g.get("body"), g.get("garments")
         if not isinstance(body, h5py.Group) or not isinstance(garments, h5py.Group):
             return
-        neck = JOINT_NAMES.index("neck")
+        neck = qa_bounds.NECK_JOINT
         joints, rest = _read(body.get("joints")), _read(body.get("rest_joints"))
         if joints is None or rest is None or joints.ndim != 3 or rest.ndim != 2:
             return
@@ -459,17 +457,13 @@ class _SequenceCheck:
                 continue
             try:
                 loop = np.asarray(loops["neck"][()], dtype=np.int64)
-                slip = qa_bounds.neckline_slip(
+                breach = qa_bounds.neckline_breach(
                     read_positions(garment, "vertices")[:, loop],
-                    garment["start_vertices"][()][loop], joints[:, neck], rest[neck])
+                    garment["start_vertices"][()][loop], joints[:, neck], rest[neck],
+                    str(_attr(garment, "category", name)))
             except (ValueError, IndexError):
                 continue
-            k = int(np.argmax(slip))
-            if slip[k] > qa_bounds.NECKLINE_SLIP_MAX:
-                breach = qa_bounds.Breach("neckline_slip", float(slip[k]), k,
-                                          qa_bounds.NECKLINE_SLIP_MAX,
-                                          qa_bounds.neckline_slip_what(
-                                              str(_attr(garment, "category", name))))
+            if breach is not None:
                 self.error(f"garments/{name}: {breach}", self.qa)
 
     def check_fabric_parameters(self, g: h5py.Group) -> None:
