@@ -27,8 +27,13 @@ the float64 reference of bench_sim (implicit, REF_SUBSTEPS per frame, over the p
 horizon), computed here, and writes the section. The scenes with a body (the walking t-shirt,
 HARD_CASES) are pickled here by `--save-scenes`: their bodies come from Anny, which the GPU
 machine need not have.
-The GPU machine needs Taichi, trimesh and rtree besides what the project's code imports; the
-figures of the last run, with their errors, are in benchmarks/results/gpu/summary.json.
+The GPU machine needs Taichi, trimesh, rtree and libigl besides what its image holds (carried
+there as unpacked wheels for its Python: the wheels of the four, without Taichi's C API and
+libigl's headers and static libraries, fit with the scenes in a call's 64 MiB as an xz tarball);
+the figures of the last run, with their errors, are in benchmarks/results/gpu/summary.json.
+The report chains a batch to Blender through bench_sim's peer rows (sim_peer.json) only where
+both ran the same simulator: the same sources, or sources whose default peer runs are bit for
+bit bench_sim's (its `behaviour` digest, computed again here at the GPU run's sources).
 """
 
 from __future__ import annotations
@@ -180,7 +185,8 @@ def _hard_case_rows(scenes: Path) -> list[dict]:
         escalated = None
         try:
             sim = simulate_within_bounds(saved["garments"], saved["body"], saved["options"])
-            record = SimpleNamespace(status="ok", sim=sim, garments=saved["garments"])
+            record = SimpleNamespace(status="ok", sim=sim, garments=saved["garments"],
+                                     body=saved["body"])
             escalated = sim.report.get("escalated_from")
         except RejectedSequence as exc:
             record = SimpleNamespace(status="rejected", stage=exc.stage, reason=exc.reason)
@@ -441,26 +447,41 @@ def _verdict(row: dict) -> str:
     return "pass: " + row["detail"] if row.get("escalated_from") else "pass"
 
 
-def blender_rows(source: str) -> tuple[str, dict[tuple[str, str], dict]]:
+def blender_rows(source: str) -> tuple[str, dict[tuple[str, str], dict], str]:
     """bench_sim's peer rows as its last full run wrote them (its date, and per scene and
-    fabric our one-thread rate, Blender's rate and Blender's error): Blender cannot run on the
-    GPU machine, so a batch is compared with it through one CPU thread, measured on both. The
-    chain holds only where both ran the same simulator (`source`: the GPU run's digest)."""
-    from benchmarks.bench_sim import PEER_JSON
+    fabric our one-thread rate, Blender's rate and Blender's error), and how they are known to
+    describe the GPU run's simulator: Blender cannot run on the GPU machine, so a batch is
+    compared with it through one CPU thread, measured on both. The chain holds only where both
+    ran the same simulator: the same sources (`source`: the GPU run's digest), or sources that
+    differ while our default solver's peer runs stay bit for bit as bench_sim's were
+    (bench_sim.peer_behaviour, computed here, at the GPU run's sources)."""
+    from benchmarks.bench_sim import PEER_JSON, peer_behaviour
+    from datagen.study.cache import source_digest
 
     data = json.loads(PEER_JSON.read_text())
+    how = f"the same simulator sources ({source})"
     if data["source"] != source:
-        raise SystemExit(
-            f"{PEER_JSON}: field 'source': bench_sim's peer rows ({data['date']}) were "
-            f"measured with simulator sources {data['source']}, the GPU run with {source}; "
-            "a batch is set against Blender through one CPU thread of each, so both must run "
-            "the same simulator: run bench_sim at the GPU run's sources, or the GPU run at "
-            "bench_sim's")
+        recorded = data.get("behaviour")
+        here = source_digest()
+        today = peer_behaviour() if recorded and here == source else None
+        if today is None or today != recorded:
+            raise SystemExit(
+                f"{PEER_JSON}: field 'source': bench_sim's peer rows ({data['date']}) were "
+                f"measured with simulator sources {data['source']}, the GPU run with {source}"
+                + (f" (this checkout: {here})" if here != source else "")
+                + (f", and our peer runs do not behave as then (behaviour {today}, then "
+                   f"{recorded})" if today else "")
+                + "; a batch is set against Blender through one CPU thread of each, so both "
+                "must run the same simulator: run bench_sim at the GPU run's sources, or the "
+                "GPU run at bench_sim's")
+        how = (f"simulator sources {data['source']} for bench_sim and {source} for the GPU run, "
+               f"whose default peer runs are bit for bit the same: bench_sim.peer_behaviour "
+               f"{today}")
     rows = {(r["scene"], r["fabric"]): {"ours": r["ours_s_per_sim_s"],
                                         "blender": r["blender_s_per_sim_s"],
                                         "blender_error_mm": r["blender_err_mm"]}
             for r in data["rows"]}
-    return data["date"], rows
+    return data["date"], rows, how
 
 
 def batch_against_blender(out_dir: Path, batches: dict) -> list[dict]:
@@ -471,7 +492,7 @@ def batch_against_blender(out_dir: Path, batches: dict) -> list[dict]:
     from datagen.study.metrics import rms_distance
 
     machine = json.loads((out_dir / "machine.json").read_text())
-    date, blender = blender_rows(machine["source"])
+    date, blender, how = blender_rows(machine["source"])
     tubes = {a: json.loads((out_dir / f"batch_tubes_{a}.json").read_text())
              for a in ("cuda", "cpu") if (out_dir / f"batch_tubes_{a}.json").exists()}
 
@@ -502,7 +523,8 @@ def batch_against_blender(out_dir: Path, batches: dict) -> list[dict]:
         out.append({"scene": f"{name} {res}", "fabric": fabric, "copies": g["copies"],
                     "gpu_per_scene": per_scene, "cpu_alone": alone[0]["s_per_sim_s"],
                     "ours_here": peer["ours"], "blender_here": peer["blender"],
-                    "blender_date": date, "chained": gpu_over_cpu * peer["blender"] / peer["ours"],
+                    "blender_date": date, "same_simulator": how,
+                    "chained": gpu_over_cpu * peer["blender"] / peer["ours"],
                     "gpu_error_mm": error, "blender_error_mm": peer["blender_error_mm"]})
     return out
 
@@ -518,7 +540,8 @@ def per_scene_lines(rows: list[dict]) -> list[str]:
         "carried to it), so the GPU's cost per scene is set against one CPU "
         "thread of that machine simulating the scene alone (the serial `default`, in the same "
         "run), and that thread's kind against Blender through bench_sim's first table, measured "
-        f"here on {rows[0]['blender_date']} (our one thread and Blender, in one run): the "
+        f"here on {rows[0]['blender_date']} (our one thread and Blender, in one run; "
+        f"{rows[0]['same_simulator']}): the "
         "estimate is GPU/CPU-thread there times Blender/ours here. The GPU error is the "
         "batch's first scene against the scene's float64 reference (as in the first table); "
         "Blender's is bench_sim's, at its quality 5.",

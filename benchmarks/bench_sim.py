@@ -104,6 +104,26 @@ def float64_reference(scene_name: str, fabric: str, resolution: str,
     return ref, horizon
 
 
+def peer_behaviour() -> str:
+    """Digest of what our default solver does on the peer scenes: its trajectories (float32,
+    the peer's effects, RATE_FRAMES frames, each scene and fabric of the first table) hashed in
+    order. Written beside the peer rows, so that bench_gpu can chain a GPU run to them across
+    a change of the simulator's sources that leaves these runs bit for bit as they were (a
+    refactor, a rule that applies only at other frame rates). Evidence, not proof, as the
+    study's fingerprints (datagen.study.fingerprint): it depends on this machine's floating
+    point, and speed is not in it."""
+    import hashlib
+
+    sub, it = QUALITY_PRESETS["xpbd"]["default"]
+    h = hashlib.sha256()
+    for scene_name, resolution in PEER_SCENES:
+        for fabric in FABRICS:
+            scene = build_scene(scene_name, fabric, resolution, frames=RATE_FRAMES)
+            h.update(f"{scene_name} {resolution} {fabric} {sub}x{it}".encode())
+            h.update(np.ascontiguousarray(run_ours(scene, "xpbd", sub, it).positions).tobytes())
+    return h.hexdigest()[:16]
+
+
 def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
     sub, it = QUALITY_PRESETS["xpbd"]["default"]
     timed_scene = build_scene(scene_name, fabric, resolution, frames=RATE_FRAMES)
@@ -529,7 +549,8 @@ def main(argv: list[str] | None = None) -> None:
         PEER_JSON.write_text(json.dumps({
             "date": time.strftime("%Y-%m-%d"), "command": COMMAND,
             "blender": peer.blender_version(), "source": source_digest(),
-            "cpu": this_machine(), "rows": rows, "machine": machine,
+            "behaviour": peer_behaviour(), "cpu": this_machine(), "rows": rows,
+            "machine": machine,
         }, indent=1, default=float) + "\n")
 
 

@@ -1,5 +1,5 @@
 """The hand-offs between benchmarks: bench_gpu sets a GPU batch against Blender through the
-peer rows bench_sim wrote, which hold only for the simulator sources both ran."""
+peer rows bench_sim wrote, which hold only for the simulator both ran."""
 
 from __future__ import annotations
 
@@ -11,19 +11,37 @@ from benchmarks import bench_gpu, bench_sim
 from datagen.qa import DEEP_SHARE_MAX
 
 
-def test_gpu_report_reads_the_peer_rows_of_the_same_sources_and_refuses_others(
+def test_gpu_report_reads_the_peer_rows_of_the_same_simulator_and_refuses_others(
         tmp_path, monkeypatch):
+    """The same sources, or other sources whose default peer runs are bit for bit bench_sim's
+    (its recorded behaviour digest, computed again at the GPU run's sources); else refused."""
+    from datagen.study import cache
+
     rows = [{"scene": "tube_cylinder 5k", "fabric": "denim", "ours_s_per_sim_s": 1.39,
              "blender_s_per_sim_s": 5.42, "blender_err_mm": 35.56}]
     peer = tmp_path / "sim_peer.json"
-    peer.write_text(json.dumps({"date": "2026-11-27", "source": "aaaa", "rows": rows}))
+    peer.write_text(json.dumps({"date": "2026-11-27", "source": "aaaa", "behaviour": "b1",
+                                "rows": rows}))
     monkeypatch.setattr(bench_sim, "PEER_JSON", peer)
-    date, table = bench_gpu.blender_rows("aaaa")
-    assert date == "2026-11-27"
+    behaviour = {"now": "b1"}
+    monkeypatch.setattr(bench_sim, "peer_behaviour", lambda: behaviour["now"])
+    monkeypatch.setattr(cache, "source_digest", lambda: "bbbb")  # this checkout's sources
+    date, table, how = bench_gpu.blender_rows("aaaa")
+    assert date == "2026-11-27" and how == "the same simulator sources (aaaa)"
     assert table == {("tube_cylinder 5k", "denim"): {"ours": 1.39, "blender": 5.42,
                                                      "blender_error_mm": 35.56}}
-    with pytest.raises(SystemExit, match="sim_peer.json: field 'source'.*aaaa.*bbbb"):
+    # Other sources, the same behaviour: the chain holds and says why.
+    _, same, how = bench_gpu.blender_rows("bbbb")
+    assert same == table and "aaaa for bench_sim and bbbb for the GPU run" in how
+    assert "bit for bit" in how and "b1" in how
+    # Other sources that behave otherwise.
+    behaviour["now"] = "b2"
+    with pytest.raises(SystemExit, match="field 'source'.*aaaa.*bbbb.*behaviour b2, then b1"):
         bench_gpu.blender_rows("bbbb")
+    # A GPU run of sources other than this checkout's: its behaviour cannot be computed here.
+    behaviour["now"] = "b1"
+    with pytest.raises(SystemExit, match="aaaa, the GPU run with cccc \\(this checkout: bbbb\\)"):
+        bench_gpu.blender_rows("cccc")
 
 
 def test_the_committed_peer_rows_cover_every_peer_scene():
