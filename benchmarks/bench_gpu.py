@@ -19,7 +19,10 @@ sheets (`batch`) and of 5k denim tubes through datagen.sim.batch (`batch_tubes`:
 of scenes with moving colliders costs); `--report` sets each peer scene's cost per scene in
 its largest batch against Blender (through one CPU thread, measured on both machines). A run
 folder may hold a mode's files from an earlier run, named in carried.json; the report labels
-them. `--repeat` (a call of its own: about four
+them. `--modes` runs some of the modes (RUN_MODES, in that order), `--deadline S` starts none
+after S seconds less what it needs, and `--pack FILE.tgz` packs the folder after each mode: a
+machine lent for a few minutes then returns what finished (on an H200, 2026-12-04: the modes
+before `hard` took 290 s, `hard` 137 s). `--repeat` (a call of its own: about four
 minutes on an H100) simulates the 4k sheet and the saved hard cases twice each on the GPU from
 the same input and compares the trajectories frame by frame: the same seed must give the same
 data there too. `--report` measures each trajectory against
@@ -380,29 +383,58 @@ def _both_backends(mode: str, out_dir: Path, scenes: Path | None, env: dict) -> 
         raise SystemExit(f"a backend's {mode} run failed (exit codes {codes})")
 
 
-def run_all(out_dir: Path, scenes: Path | None) -> None:
-    """Every measurement, both backends at once where both run."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ, PYTHONWARNINGS="ignore", PYTHONUNBUFFERED="1")
-    _both_backends("cases", out_dir, scenes, env)
-    if scenes:
-        _both_backends("hard", out_dir, scenes, env)
-    _both_backends("self_collision", out_dir, scenes, env)
-    _both_backends("batch", out_dir, scenes, env)
-    _both_backends("batch_tubes", out_dir, scenes, env)
-    # Alone on the GPU: the serial limit's cost, and the profiled run (the profiler's timing
-    # would slow the timed ones).
-    for mode in ("serial_limit", "profile"):
-        subprocess.run([sys.executable, "-m", "benchmarks.bench_gpu", "--worker", "cuda",
-                        "--mode", mode, "--out", str(out_dir / f"{mode}.json")], env=env,
-                       check=True)
-    machine = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
-                             capture_output=True, text=True).stdout.strip()
+# --run's modes in the order they run: the ones the report needs first, so that a run cut
+# short by a machine's lease still makes a report (`--deadline`); the hard cases last, the
+# longest (about 3.5 minutes on an H200), and only with saved scenes.
+RUN_MODES = ("cases", "batch", "batch_tubes", "profile", "serial_limit", "self_collision",
+             "hard")
+GPU_ONLY_MODES = ("profile", "serial_limit")  # alone on the GPU: the profiler would slow the
+# timed runs, and the serial limit's cost is the GPU's question
+HARD_MODE_SECONDS = 240.0  # what `hard` needs of the deadline to be started
+
+
+def run_all(out_dir: Path, scenes: Path | None, modes: tuple[str, ...] = RUN_MODES,
+            deadline: float | None = None, pack: Path | None = None) -> None:
+    """The measurements of `modes`, in RUN_MODES' order, both backends at once where both run.
+    With `deadline` (seconds from the start) a mode is not started once too little is left
+    (HARD_MODE_SECONDS for the hard cases, 20 s for the others); with `pack` (a .tgz path) the
+    folder is packed there after each mode, so that what finished comes back from a machine
+    whose lease ends mid-run."""
+    import tarfile
+
     from datagen.study.cache import source_digest
 
+    unknown = sorted(set(modes) - set(RUN_MODES))
+    if unknown:
+        raise SystemExit(f"--modes: unknown {', '.join(unknown)}; expected some of "
+                         f"{', '.join(RUN_MODES)}")
+    start = time.monotonic()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ, PYTHONWARNINGS="ignore", PYTHONUNBUFFERED="1")
+    machine = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+                             capture_output=True, text=True).stdout.strip()
     (out_dir / "machine.json").write_text(json.dumps(
         {"gpu": machine, "cpu_cores": os.cpu_count(), "date": time.strftime("%Y-%m-%d"),
          "python": sys.version.split()[0], "source": source_digest()}))
+    for mode in (m for m in RUN_MODES if m in modes):
+        if mode == "hard" and not scenes:
+            print("hard: skipped (no --scenes)", flush=True)
+            continue
+        left = None if deadline is None else deadline - (time.monotonic() - start)
+        if left is not None and left < (HARD_MODE_SECONDS if mode == "hard" else 20.0):
+            print(f"{mode}: skipped, {left:.0f} s of the deadline left", flush=True)
+            continue
+        t = time.monotonic()
+        if mode in GPU_ONLY_MODES:
+            subprocess.run([sys.executable, "-m", "benchmarks.bench_gpu", "--worker", "cuda",
+                            "--mode", mode, "--out", str(out_dir / f"{mode}.json")], env=env,
+                           check=True)
+        else:
+            _both_backends(mode, out_dir, scenes, env)
+        print(f"{mode}: {time.monotonic() - t:.0f} s", flush=True)
+        if pack is not None:
+            with tarfile.open(pack, "w:gz") as tar:
+                tar.add(out_dir, arcname=out_dir.name)
 
 
 def _reference(row: dict, out_dir: Path) -> tuple[np.ndarray, int]:
@@ -744,6 +776,12 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run", type=Path, help="run both backends, figures into this folder")
+    parser.add_argument("--modes", default=",".join(RUN_MODES),
+                        help="with --run: the modes to run, comma-separated (default: all)")
+    parser.add_argument("--deadline", type=float,
+                        help="with --run: seconds after which no further mode is started")
+    parser.add_argument("--pack", type=Path,
+                        help="with --run: pack the folder into this .tgz after each mode")
     parser.add_argument("--repeat", type=Path,
                         help="on the GPU: each case twice from the same input, into this folder")
     parser.add_argument("--report", type=Path, help="write the section from a --run folder")
@@ -758,7 +796,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.worker:
         _worker(args.worker, args.out, args.scenes, args.mode)
     elif args.run:
-        run_all(args.run, args.scenes)
+        run_all(args.run, args.scenes, tuple(m for m in args.modes.split(",") if m),
+                args.deadline, args.pack)
     elif args.repeat:
         args.repeat.mkdir(parents=True, exist_ok=True)
         _worker("cuda", args.repeat / "repeat_cuda.json", args.scenes, "repeat")

@@ -466,3 +466,46 @@ def test_the_choice_at_blenders_error_skips_costlier_settings_and_takes_each_one
     times = {(30, 1): [1.20, 1.18], (20, 2): [1.60, 0.95], (20, 4): [1.10, 1.40]}
     assert bench_sim.choose_fastest(times) == (20, 2)
     assert bench_sim.choose_fastest({(30, 1): [1.0], (20, 2): [1.0]}) == (30, 1)
+
+
+def test_the_gpu_run_keeps_its_order_skips_what_the_deadline_cannot_hold_and_packs_each_mode(
+        tmp_path, monkeypatch):
+    """bench_gpu --run on a short lease: the report's modes first, none started past the
+    deadline (the hard cases need HARD_MODE_SECONDS of it), the folder packed after each mode
+    so that what finished comes back; an unknown mode is refused by name. The backends'
+    processes are replaced here: what is tested is the run's schedule, not the GPU."""
+    import subprocess
+    import tarfile
+    import time as time_module
+
+    ran = []
+    clock = {"t": 0.0}
+
+    def both(mode, out_dir, scenes, env):
+        ran.append(mode)
+        (out_dir / f"{mode}_cuda.json").write_text("[]")
+        clock["t"] += 100.0  # each mode takes 100 s
+
+    def gpu_alone(cmd, **kwargs):
+        if "--mode" in cmd:
+            ran.append(cmd[cmd.index("--mode") + 1])
+            clock["t"] += 10.0
+        return subprocess.CompletedProcess(cmd, 0, stdout="Some GPU\n")
+
+    monkeypatch.setattr(bench_gpu, "_both_backends", both)
+    monkeypatch.setattr(bench_gpu.subprocess, "run", gpu_alone)
+    monkeypatch.setattr(time_module, "monotonic", lambda: clock["t"])
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    pack = tmp_path / "run.tgz"
+    bench_gpu.run_all(tmp_path / "run", scenes, ("hard", "cases", "profile", "batch"),
+                      deadline=400.0, pack=pack)
+    # hard asked for first, run last; at 210 s only 190 of the deadline are left for it
+    assert ran == ["cases", "batch", "profile"]
+    with tarfile.open(pack) as tar:
+        names = set(tar.getnames())
+    assert {"run/machine.json", "run/cases_cuda.json", "run/batch_cuda.json"} <= names
+    machine = json.loads((tmp_path / "run" / "machine.json").read_text())
+    assert machine["gpu"] == "Some GPU"
+    with pytest.raises(SystemExit, match="--modes: unknown batches"):
+        bench_gpu.run_all(tmp_path / "run2", None, ("cases", "batches"))
