@@ -388,8 +388,9 @@ def _both_backends(mode: str, out_dir: Path, scenes: Path | None, env: dict) -> 
 # longest (about 3.5 minutes on an H200), and only with saved scenes.
 RUN_MODES = ("cases", "batch", "batch_tubes", "profile", "serial_limit", "self_collision",
              "hard")
-GPU_ONLY_MODES = ("profile", "serial_limit")  # alone on the GPU: the profiler would slow the
-# timed runs, and the serial limit's cost is the GPU's question
+# Alone on the GPU: the profiler would slow the timed runs, and the serial limit's cost is the
+# GPU's question.
+GPU_ONLY_MODES = ("profile", "serial_limit")
 HARD_MODE_SECONDS = 240.0  # what `hard` needs of the deadline to be started
 
 

@@ -104,30 +104,40 @@ def float64_reference(scene_name: str, fabric: str, resolution: str,
     return ref, horizon
 
 
-def peer_behaviour() -> str:
+def peer_behaviour(trajectories: list[np.ndarray] | None = None) -> str:
     """Digest of what our default solver does on the peer scenes: its trajectories (float32,
     the peer's effects, RATE_FRAMES frames, each scene and fabric of the first table) hashed in
     order. Written beside the peer rows, so that bench_gpu can chain a GPU run to them across
     a change of the simulator's sources that leaves these runs bit for bit as they were (a
     refactor, a rule that applies only at other frame rates). Evidence, not proof, as the
     study's fingerprints (datagen.study.fingerprint): it depends on this machine's floating
-    point, and speed is not in it."""
+    point, and speed is not in it. `trajectories`: those runs' positions in that order where
+    the caller has them (bench_sim's peer rows time them), else they are run here."""
     import hashlib
 
     sub, it = QUALITY_PRESETS["xpbd"]["default"]
+    parts = [(scene_name, resolution, fabric) for scene_name, resolution in PEER_SCENES
+             for fabric in FABRICS]
+    if trajectories is None:
+        trajectories = [
+            run_ours(build_scene(name, fabric, res, frames=RATE_FRAMES), "xpbd", sub, it).positions
+            for name, res, fabric in parts]
     h = hashlib.sha256()
-    for scene_name, resolution in PEER_SCENES:
-        for fabric in FABRICS:
-            scene = build_scene(scene_name, fabric, resolution, frames=RATE_FRAMES)
-            h.update(f"{scene_name} {resolution} {fabric} {sub}x{it}".encode())
-            h.update(np.ascontiguousarray(run_ours(scene, "xpbd", sub, it).positions).tobytes())
+    for (scene_name, resolution, fabric), positions in zip(parts, trajectories, strict=True):
+        h.update(f"{scene_name} {resolution} {fabric} {sub}x{it}".encode())
+        h.update(np.ascontiguousarray(positions).tobytes())
     return h.hexdigest()[:16]
 
 
-def peer_row(scene_name: str, resolution: str, fabric: str, log) -> dict:
+def peer_row(scene_name: str, resolution: str, fabric: str, log,
+             trajectories: list[np.ndarray] | None = None) -> dict:
+    """One peer scene's row; the timed run's positions are appended to `trajectories` (for
+    peer_behaviour)."""
     sub, it = QUALITY_PRESETS["xpbd"]["default"]
     timed_scene = build_scene(scene_name, fabric, resolution, frames=RATE_FRAMES)
     ours = run_ours(timed_scene, "xpbd", sub, it)  # PEER_EFFECTS: what the peer runs
+    if trajectories is not None:
+        trajectories.append(ours.positions)
     own = run_ours(timed_scene, "xpbd", sub, it, effects="auto")  # the scene's own
     contact = choose_contact(timed_scene)  # the cushion (see above)
     blender_run = contact.run
@@ -361,14 +371,14 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
     log = print
     sub, it = QUALITY_PRESETS["xpbd"]["default"]
-    rows, machine = [], []
+    rows, machine, trajectories = [], [], []
     if peer.blender_executable() is None:
         log("Blender is not installed (apt-get install -y blender): the peer rows are skipped.")
     else:
         scenes = PEER_SCENES[:1] if args.quick else PEER_SCENES
         for scene_name, resolution in scenes:
             for fabric in FABRICS[:1] if args.quick else FABRICS:
-                rows.append(peer_row(scene_name, resolution, fabric, log))
+                rows.append(peer_row(scene_name, resolution, fabric, log, trajectories))
                 machine.append(machine_row(rows[-1], scene_name, resolution, fabric, log))
     outfit = outfit_figures()
     log(outfit)
@@ -549,7 +559,7 @@ def main(argv: list[str] | None = None) -> None:
         PEER_JSON.write_text(json.dumps({
             "date": time.strftime("%Y-%m-%d"), "command": COMMAND,
             "blender": peer.blender_version(), "source": source_digest(),
-            "behaviour": peer_behaviour(), "cpu": this_machine(), "rows": rows,
+            "behaviour": peer_behaviour(trajectories), "cpu": this_machine(), "rows": rows,
             "machine": machine,
         }, indent=1, default=float) + "\n")
 
