@@ -224,6 +224,33 @@ def test_walk_turns_at_the_requested_rate():
     assert planted_speeds(generate("walk", 960, 120.0, {"turn": 20.0})).max() < 0.05
 
 
+def ankle_dorsiflexion_deg(motion, side: str) -> np.ndarray:
+    """(F,) dorsiflexion from the joints alone: the rest angle between shin and foot (knee to
+    ankle, ankle to ball) less the frame's."""
+    def angle(p):
+        u = p[..., J[f"{side}_knee"], :] - p[..., J[f"{side}_ankle"], :]
+        w = p[..., J[f"{side}_foot"], :] - p[..., J[f"{side}_ankle"], :]
+        cos = np.sum(u * w, -1) / np.linalg.norm(u, axis=-1) / np.linalg.norm(w, axis=-1)
+        return np.degrees(np.arccos(cos))
+
+    return angle(REFERENCE_REST_JOINTS) - angle(joints(motion))
+
+
+@pytest.mark.parametrize("speed", [2.0, 3.0, 4.5])
+def test_running_swing_ankle_stays_in_its_range(speed):
+    # Running swing dorsiflexes the ankle 10-20 deg; the footstep plan's swing pitch on a knee
+    # folded to 120 deg gave 37, 48 and 68 deg at these speeds, where Anny's foot sinks into
+    # its shin (a trouser hem there was swallowed: docs/simulator.md, "The ankle").
+    m = generate("run", 480, 120.0, {"speed": speed}, mirror=True)
+    h = sole_heights(m)
+    for k, side in enumerate(("left", "right")):
+        dorsi = ankle_dorsiflexion_deg(m, side)
+        airborne = h[:, k].min(-1) > 0.03
+        assert airborne.sum() > 0.2 * m.n_frames
+        assert dorsi[airborne].max() < 26.0, dorsi[airborne].max()
+        assert dorsi[airborne].max() > 15.0  # the foot still comes up to clear the ground
+
+
 # -- jump and spin ----------------------------------------------------------------------------
 
 
