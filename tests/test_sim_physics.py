@@ -605,6 +605,24 @@ def test_a_frame_unstable_after_the_last_retry_rejects_the_sequence_with_its_rea
     assert "still after 2 retries with up to 16 substeps" in message
 
 
+def test_a_runaway_names_the_garment_that_ran_away():
+    """Of two garments, the one whose vertex ran away is named: a small sheet 1 m aside falls
+    freely (a rigid fall is stable at any step: every vertex gains g dt), the hanging one
+    is unstable at 4 substeps."""
+    from datagen.errors import RejectedSequence
+
+    hanging = grid_sheet(8, 0.3, 1.0, name="hanging")
+    hanging.pinned = np.array([0, 8])
+    falling = grid_sheet(2, 0.1, 1.0, name="falling")
+    falling.vertices = falling.vertices + [1.0, 0.0, 0.0]
+    options = SimOptions(solver="explicit", substeps=4, frames=20, settle_seconds=0.0,
+                         strain_refinements=0)
+    with pytest.raises(RejectedSequence) as info:
+        simulate([falling, hanging], None, options)
+    assert "runaway velocity" in info.value.reason
+    assert "(limit 15.0) in the sheet 'hanging', still after" in info.value.reason
+
+
 def test_the_energy_bound_is_exact_for_free_fall():
     """kinetic_energy_bound is tight for a cloth falling straight down (every vertex gains
     exactly g dt) and holds for any drive as fast as the bound's."""

@@ -587,11 +587,13 @@ class _Simulation:
             return "non-finite positions"
         speeds = _row_norms(v)
         for k, part in enumerate(self.parts):
-            speed = float(speeds[part.lo:part.hi].max())
+            fastest = part.lo + int(np.argmax(speeds[part.lo:part.hi]))
+            speed = float(speeds[fastest])
             body_speed = self._body_speed(part.body)
             limit = self._speed_limit(body_speed)
             if speed > limit:
-                return f"{part.label}runaway velocity {speed:.1f} m/s (limit {limit:.1f})"
+                return (f"{part.label}runaway velocity {speed:.1f} m/s (limit {limit:.1f}) "
+                        f"in {self._garment_label(fastest)}")
             ke = part.kinetic_energy(self.model, v)
             if ke > 0.5 * part.mass * limit**2 * 0.25:
                 return f"{part.label}kinetic energy blow-up ({ke:.3g} J)"
@@ -599,6 +601,12 @@ class _Simulation:
             if reason is not None:
                 return reason
         return None
+
+    def _garment_label(self, vertex: int) -> str:
+        """Which garment cloth vertex `vertex` belongs to, as a rejection names it: an outfit's
+        runaway is often one garment gone (a strap top slid down onto the thighs), not all."""
+        g = self.garments[int(self.model.garment_of_vertex[vertex])]
+        return f"the {g.category} '{g.name}'"
 
     def _energy_gain(self, settings: SolverSettings, part: _Part, k: int, ke: float,
                      x: np.ndarray, body_speed: float) -> str | None:
