@@ -729,7 +729,7 @@ def _build_gait(style: _GaitStyle, t: np.ndarray, fps: float, p: dict[str, float
     return _Built(pose.rot, pelvis, np.zeros(len(t)), world=True)
 
 
-def ankle_dorsiflexion(ankle_rot: np.ndarray) -> np.ndarray:
+def _ankle_dorsiflexion(ankle_rot: np.ndarray) -> np.ndarray:
     """Dorsiflexion (radians, toes up positive) of ankle rotations (..., 3, 3) relative to the
     shin (local, world axes): the turn of the rest foot's ankle-to-ball direction about the
     lateral axis. Either leg: a turn about x is the same in the mirror image."""
@@ -746,7 +746,7 @@ def _limit_swing_dorsiflexion(pose: _Pose, swing: np.ndarray, start: float, ceil
     lo, span = start * _DEG, (ceiling - start) * _DEG
     for k, side in enumerate(("left", "right")):
         j = _J[f"{side}_ankle"]
-        over = np.maximum(ankle_dorsiflexion(pose.rot[:, j]) - lo, 0.0)
+        over = np.maximum(_ankle_dorsiflexion(pose.rot[:, j]) - lo, 0.0)
         excess = swing[k] * (over - span * np.tanh(over / span))
         pose.rot[:, j] = _rx(excess) @ pose.rot[:, j]
 
