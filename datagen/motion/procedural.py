@@ -24,9 +24,12 @@ Actions:
   Footsteps are planted along the path and each foot rolls heel - flat - ball - toe-off; the legs
   reach them by inverse kinematics and the pelvis rides as high as the stance legs allow, so the
   stance foot does not slide while the root advances at exactly `speed`.
-- `run`: a running gait with a flight phase between steps (pelvis bobbing at step frequency);
-  parameters as `walk`. In swing the foot turns toes-down about its ankle where it would pass
-  15 degrees of dorsiflexion, nearing 25 at most (a runner's swing: 10-20 degrees).
+- `run`: a running gait with a flight phase between steps; parameters as `walk`. The pelvis
+  flies ballistically from each toe-off to the next touch-down, at heights that the knee's
+  flexion there sets, and over each stance the ground pushes it with a smooth force that
+  turns the landing into the next take-off (a runner's 7 cm of rise and fall, the stance knee
+  bent 55-60 degrees at most). In swing the foot turns toes-down about its ankle where it
+  would pass 15 degrees of dorsiflexion, nearing 25 at most (a runner's swing: 10-20 degrees).
 - `jump`: stand, countermovement, push-off, ballistic flight, landing absorption, recovery,
   repeated; `height` (0.05 to 0.4 m, default 0.2) is how far the soles clear the ground at the
   apex, `distance` (0 to 0.8 m) how far forward each jump goes, `amplitude` scales the crouch
@@ -56,7 +59,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import lru_cache
 
 import numpy as np
 
@@ -291,22 +293,25 @@ _LEG_SOFT = _LEG_MAX - 0.006
 _LEG_CAP = _LEG_MAX - 0.0015
 
 
-def _leg_length(knee: float) -> float:
+def _leg_length(knee: np.ndarray | float) -> np.ndarray:
     """Hip-to-ankle distance of the reference leg at knee flexion `knee` (radians)."""
-    c, s = math.cos(knee), math.sin(knee)
+    c, s = np.cos(knee), np.sin(knee)
     qy = _T_YZ[0] + c * _S_YZ[0] - s * _S_YZ[1]
     qz = _T_YZ[1] + s * _S_YZ[0] + c * _S_YZ[1]
-    return math.sqrt(_QX**2 + qy * qy + qz * qz)
+    return np.sqrt(_QX**2 + qy * qy + qz * qz)
 
 
-def _leg_ik(d: np.ndarray, ext: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _leg_ik(
+    d: np.ndarray, ext: np.ndarray, reach: float = _LEG_SOFT
+) -> tuple[np.ndarray, np.ndarray]:
     """Left hip and knee rotations that put the ankle at `d` (F, 3) from the hip (pelvis axes),
     with hip external rotation `ext` (F,): hip = Rz(ext) Ry(abduction) Rx(flexion), knee =
-    Rx(kappa); the knee always bends forwards."""
+    Rx(kappa); the knee always bends forwards. Targets farther than `reach` are approached
+    softly (tanh) up to _LEG_CAP."""
     d = (_rz(-ext) @ d[..., None])[..., 0]
     length = np.linalg.norm(d, axis=-1)
-    m = _LEG_CAP - _LEG_SOFT
-    soft = np.where(length > _LEG_SOFT, _LEG_SOFT + m * np.tanh((length - _LEG_SOFT) / m), length)
+    m = _LEG_CAP - reach
+    soft = np.where(length > reach, reach + m * np.tanh((length - reach) / m), length)
     d = d * (soft / np.maximum(length, 1e-9))[:, None]
     cos_g = (soft**2 - _QX**2 - _T_LEN**2 - _S_LEN**2) / (2.0 * _T_LEN * _S_LEN)
     kappa = np.arccos(np.clip(cos_g, -1.0, 1.0)) - _GAMMA0
@@ -328,11 +333,13 @@ def _solve_legs(
     feet: np.ndarray,
     toes: np.ndarray,
     hip_ext: np.ndarray | None = None,
+    reach: float = _LEG_SOFT,
 ) -> None:
     """Set hips, knees, ankles and toes so that the ankles reach `ankles` (2, F, 3) (left, right;
     world) with feet oriented `feet` (2, F, 3, 3) (world), given the root rotation (F, 3, 3) and
     pelvis position (F, 3). `toes` (2, F) bends the toes up (they stay flat when the heel rises);
-    `hip_ext` (2, F, left convention) turns each knee outwards."""
+    `hip_ext` (2, F, left convention) turns each knee outwards; targets beyond `reach` are
+    approached softly (_leg_ik)."""
     n = pose.n
     hip_ext = np.zeros((2, n)) if hip_ext is None else np.broadcast_to(hip_ext, (2, n))
     root_t = np.swapaxes(root, -1, -2)
@@ -340,7 +347,7 @@ def _solve_legs(
         flip = _X_FLIP if k else np.ones(3)
         hip = pelvis + root @ (_HIP_OFFSET * flip)
         d = (root_t @ (ankles[k] - hip)[..., None])[..., 0] * flip  # left convention
-        hip_rot, knee_rot = _leg_ik(d, hip_ext[k])
+        hip_rot, knee_rot = _leg_ik(d, hip_ext[k], reach)
         if k:
             hip_rot = hip_rot * _MIRROR_SIGN
             knee_rot = knee_rot * _MIRROR_SIGN
@@ -456,8 +463,7 @@ class _GaitStyle:
     toe_off: float  # foot pitch at toe-off, deg (heel up)
     flat: tuple[float, float]  # fractions of stance when the foot is flat: [start, heel-off]
     lift: tuple[float, float]  # peak ankle lift in swing, m: [0] + [1] * speed
-    knee: float  # stance knee flexion at full reach, deg (sets the pelvis height of walking)
-    bob: tuple[float, float]  # running: pelvis bob half-amplitude, m; walking: (0, 0)
+    knee: float  # walking: stance knee flexion at full reach, deg (sets the pelvis height)
     sway: float  # lateral pelvis sway towards the stance foot, m
     pelvis_yaw: float  # deg
     pelvis_roll: float  # deg
@@ -466,10 +472,17 @@ class _GaitStyle:
     arm_fwd: float  # deg
     elbow: float  # deg
     elbow_swing: float  # deg
-    skew: float  # swing timing: 0 = smootherstep, up to 30 = brisker lift-off and landing
+    # Walking's swing timing: 0 = smootherstep, up to 30 = brisker lift-off and landing
+    skew: float
     # Swing-phase ankle dorsiflexion, deg: where a soft limit starts and the ceiling it nears
     # (_limit_swing_dorsiflexion); None leaves the swing foot as the footstep plan pitches it.
     swing_dorsiflexion: tuple[float, float] | None = None
+    # Running (None: walking): the knee's flexion at touch-down and at toe-off, deg, which set
+    # the pelvis height there (_run_height).
+    stance_knee: tuple[float, float] | None = None
+    # Running: how high the swing ankle stays above its path late in the swing before it comes
+    # down to land (m): a runner's foot does not skim the ground ahead of the hip.
+    landing_height: float = 0.0
 
 
 _WALK = _GaitStyle(
@@ -482,7 +495,6 @@ _WALK = _GaitStyle(
     flat=(0.15, 0.55),
     lift=(0.08, 0.03),
     knee=8.0,
-    bob=(0.0, 0.0),
     sway=0.02,
     pelvis_yaw=5.0,
     pelvis_roll=3.0,
@@ -501,9 +513,8 @@ _RUN = _GaitStyle(
     heel_strike=5.0,
     toe_off=45.0,
     flat=(0.25, 0.5),
-    lift=(0.14, 0.04),
+    lift=(0.06, 0.06),
     knee=0.0,
-    bob=(0.02, 0.008),
     sway=0.01,
     pelvis_yaw=6.0,
     pelvis_roll=3.0,
@@ -512,12 +523,21 @@ _RUN = _GaitStyle(
     arm_fwd=-8.0,
     elbow=85.0,
     elbow_swing=15.0,
-    skew=10.0,
+    skew=0.0,  # unused: a run's swing has its own timing (_feet_plan)
     # The plan pitches the swing foot in the world, and a runner's knee folds to 100-120 deg in
     # swing, so the ankle came out 48 deg dorsiflexed at 3 m/s and 68 at 4.5 (running swing
     # peaks at 10-20 deg): the foot's top sank into the shin and swallowed trouser hems.
     swing_dorsiflexion=(15.0, 25.0),
+    # Flexion from the rest pose's knee, which is itself bent about 10 deg: 25-30 deg between
+    # thigh and shin at touch-down and toe-off (a runner's: about 20 and 20-25).
+    stance_knee=(15.0, 18.0),
+    landing_height=0.05,
 )
+# Running: the landing height's rise after toe-off and its fall before touch-down, in fractions
+# of the swing; the heel's rise at toe-off, in units of its mean rate since heel-off.
+_LANDING_RISE, _LANDING_FALL = 0.3, 0.3
+_TOE_OFF_RATE = 1.5
+_TAKE_OFF_RISE = 0.01
 _GAIT_START = 0.25  # the first frame's phase in the stride (0 = left heel strike)
 
 
@@ -577,12 +597,29 @@ def _feet_plan(
             _keys(s_st, [0.0, f0, f1, 1.0], [-hs, 0.0, 0.0, to]),
             _keys(s_sw, [0.0, 0.25, 0.6, 1.0], [to, to + 10 * _DEG, 0.0, -hs]),
         )
+        if style.stance_knee is not None:
+            # Running: the heel still rises as the ball leaves the ground (the push-off's
+            # plantarflexion goes on through toe-off), so that the foot, not the knee, takes
+            # up the hip's rise there; walking's foot pauses at toe-off.
+            up, sw_peak = f1 * beta, beta + 0.25 * (1.0 - beta)
+            rate = _TOE_OFF_RATE * to / (beta - up)
+            push = (u >= up) & (u < beta)
+            pitch = np.where(push, _quintic(u, up, beta, (0.0, 0.0, 0.0), (to, rate, 0.0)), pitch)
+            rise = (u >= beta) & (u < sw_peak)
+            pitch = np.where(rise, _quintic(u, beta, sw_peak, (to, rate, 0.0),
+                                            (to + 10 * _DEG, 0.0, 0.0)), pitch)
         roll = np.where(stance, _smootherstep((s_st - f0) / (f1 - f0)), 1.0 - _smootherstep(s_sw))
         # Skewed smootherstep (still C2, monotonic): the foot leaves and arrives briskly, so it
         # neither trails far behind the hip after toe-off nor reaches far ahead before landing.
         blend = (_smootherstep(s_sw) + style.skew * s_sw**3 * (1 - s_sw) ** 3 * (1 - 2 * s_sw))[
             :, None
         ]
+        if style.stance_knee is not None:
+            # Running: smoothstep, which arrives at its footprint with the foot still braking
+            # (C1 at touch-down). A smootherstep's foot is nearly there by 80 % of the swing,
+            # while the hip, in flight, is half a metre behind: out of reach for a runner's
+            # pelvis height, which is what kept the run crouched.
+            blend = (s_sw * s_sw * (3.0 - 2.0 * s_sw))[:, None]
         pivot = np.where(
             stance[:, None],
             heel0 + roll[:, None] * (ball0 - heel0),
@@ -590,6 +627,10 @@ def _feet_plan(
         )
         # Swing lift: a C2 bump peaking at a third of the swing (the foot clears early).
         bump = s_sw**3 * (1.0 - s_sw) ** 6 / (2.0**6 / 3.0**9)
+        # Running: the foot stays up late in the swing and comes down over its last part.
+        bump = bump + style.landing_height / lift_peak * (
+            _smootherstep(s_sw / _LANDING_RISE) * _smootherstep((1.0 - s_sw) / _LANDING_FALL)
+        )
         # The heel pivots on its sole point, the ball on its joint (the toes carry it).
         pivot[:, 2] = roll * BALL_HEIGHT + np.where(stance, 0.0, lift_peak * bump)
         yaw = np.where(stance, yaw0_, yaw0_ + blend[:, 0] * (yaw1_ - yaw0_))
@@ -629,41 +670,6 @@ def _gait_root(
     return root, xy, psi + osc_yaw
 
 
-def _reach_height(plan: dict, root: np.ndarray, xy: np.ndarray, knee: float) -> np.ndarray:
-    """Per leg (2, F): the highest pelvis that still reaches the ankle target with the knee bent
-    by `knee`; a swing leg only has to be within reach."""
-    out = np.empty((2, len(xy)))
-    for k in range(2):
-        length = _leg_length(knee) + (1.0 - plan["contact"][k]) * (
-            _LEG_SOFT - 0.002 - _leg_length(knee)
-        )
-        hip = root @ (_HIP_OFFSET * (_X_FLIP if k else np.ones(3)))
-        ankle = plan["ankle"][k]
-        horiz = np.sum((ankle[:, :2] - xy - hip[:, :2]) ** 2, axis=-1)
-        out[k] = ankle[:, 2] - hip[:, 2] + np.sqrt(np.maximum(length**2 - horiz, 0.01))
-    return out
-
-
-def _gait_height(
-    t: np.ndarray,
-    plan: dict,
-    root: np.ndarray,
-    xy: np.ndarray,
-    style: _GaitStyle,
-    speed: float,
-    base: float,
-) -> np.ndarray:
-    reach = _reach_height(plan, root, xy, style.knee * _DEG)
-    if style.bob[0] == 0.0:  # walking: vault over the stance leg, never above standing height
-        cap = np.full(len(t), PELVIS_STAND + 0.01)
-        return _softmin(np.stack([reach[0], reach[1], cap], axis=-1), 0.015)[0]
-    # Running: a bob at step frequency, lowest at mid-stance, highest in the flight.
-    beta = style.stance[0] + style.stance[1] * speed
-    phi = 2 * np.pi * plan["phase"]
-    bob = (style.bob[0] + style.bob[1] * speed) * -np.cos(2 * phi - 2 * np.pi * 0.5 * beta)
-    return base + bob
-
-
 def _gait_back(style: _GaitStyle, speed: float) -> float:
     """How far behind the hip the flat foot sits at mid-stance (m): the foot lands ahead of the
     hip by about a third of the pelvis travel during stance and leaves (rolled onto its ball, heel
@@ -673,17 +679,96 @@ def _gait_back(style: _GaitStyle, speed: float) -> float:
     return 0.17 * travel - 0.023 * style.heel_strike / 15.0
 
 
-@lru_cache(maxsize=64)
-def _run_base(style: _GaitStyle, speed: float) -> float:
-    """Running: the pelvis height about which it bobs, as high as the stance legs allow with
-    the knee bent at least 12 degrees (evaluated on one stride)."""
+def _hip_room(plan: dict, root: np.ndarray, xy: np.ndarray, k: int, length) -> np.ndarray:
+    """(F,) the pelvis height at which leg k's hip is `length` (scalar or (F,)) from its ankle
+    target."""
+    hip = root @ (_HIP_OFFSET * (_X_FLIP if k else np.ones(3)))
+    ankle = plan["ankle"][k]
+    horiz = np.sum((ankle[:, :2] - xy - hip[:, :2]) ** 2, axis=-1)
+    return ankle[:, 2] - hip[:, 2] + np.sqrt(np.maximum(length**2 - horiz, 0.01))
+
+
+def _reach_height(plan: dict, root: np.ndarray, xy: np.ndarray, knee: float) -> np.ndarray:
+    """Per leg (2, F): the highest pelvis that still reaches the ankle target with the knee bent
+    by `knee`; a swing leg only has to be within reach."""
+    out = np.empty((2, len(xy)))
+    for k in range(2):
+        length = _leg_length(knee) + (1.0 - plan["contact"][k]) * (
+            _LEG_SOFT - 0.002 - _leg_length(knee)
+        )
+        out[k] = _hip_room(plan, root, xy, k, length)
+    return out
+
+
+def _walk_height(plan: dict, root: np.ndarray, xy: np.ndarray, style: _GaitStyle) -> np.ndarray:
+    """Walking: vault over the stance leg, never above standing height."""
+    reach = _reach_height(plan, root, xy, style.knee * _DEG)
+    cap = np.full(len(xy), PELVIS_STAND + 0.01)
+    return _softmin(np.stack([reach[0], reach[1], cap], axis=-1), 0.015)[0]
+
+
+def _stance_height(
+    t: np.ndarray, style: _GaitStyle, speed: float, amp: float, yaw0: float, turn: float,
+    back: float, k: int, knee: float,
+) -> np.ndarray:
+    """Running: the pelvis height (F,) at which leg k reaches its footstep at times t with the
+    knee bent by `knee` (radians)."""
+    plan = _feet_plan(t, style, speed, yaw0, turn, back)
+    root, xy, _ = _gait_root(t, plan, style, speed, amp, yaw0, turn)
+    return _hip_room(plan, root, xy, k, _leg_length(knee))
+
+
+def _run_height(
+    t: np.ndarray, style: _GaitStyle, speed: float, amp: float, yaw0: float, turn: float,
+    back: float,
+) -> np.ndarray:
+    """Running: the pelvis height (F,), taken for the body's centre of mass. At each touch-down
+    and toe-off it is where the landing or leaving leg reaches its footstep with the knee at the
+    style's flexion there; in each flight it is ballistic (gravity alone) between them; over
+    each stance the ground pushes up with a smooth force that is zero at touch-down and toe-off
+    (a half sine, skewed by a full one to meet the toe-off height): its impulse turns the
+    landing's fall into the next take-off, and the path is C2 throughout."""
     freq = style.freq[0] + style.freq[1] * speed
-    t = np.arange(128) / (128 * freq)
-    plan = _feet_plan(t, style, speed, 0.0, 0.0, _gait_back(style, speed))
-    root, xy, _ = _gait_root(t, plan, style, speed, 1.0, 0.0, 0.0)
-    reach = _reach_height(plan, root, xy, 12.0 * _DEG)
-    bob = _gait_height(t, plan, root, xy, style, speed, 0.0)
-    return min(float(np.min(reach - bob[None])), PELVIS_STAND)
+    beta = style.stance[0] + style.stance[1] * speed
+    cyc = t * freq + _GAIT_START
+    half = np.floor(cyc / 0.5)  # half-strides: leg (half mod 2) is on the ground, then flight
+    n = np.arange(half.min() - 1, half.max() + 2)  # the half-strides around every frame
+    legs = (n % 2).astype(int)
+    t_on = (0.5 * n - _GAIT_START) / freq
+    t_off = (0.5 * n + beta - _GAIT_START) / freq
+    knee_on, knee_off = (a * _DEG for a in style.stance_knee)
+    z_on = np.empty(len(n))
+    z_off = np.empty(len(n))
+    for k in (0, 1):
+        sel = legs == k
+        z_on[sel] = _stance_height(t_on[sel], style, speed, amp, yaw0, turn, back, k, knee_on)
+        z_off[sel] = _stance_height(t_off[sel], style, speed, amp, yaw0, turn, back, k, knee_off)
+    # A slow run's toe-off foot, up on its ball close behind the hip, would lift the pelvis
+    # well above touch-down's; the body leaves no higher than it landed (+ _TAKE_OFF_RISE).
+    z_off = np.minimum(z_off, z_on + _TAKE_OFF_RISE)
+    flight = (0.5 - beta) / freq
+    # Flight n leaves at (t_off[n], z_off[n]) and lands at (t_on[n + 1], z_on[n + 1]).
+    v_off = (z_on[1:] - z_off[:-1]) / flight + 0.5 * GRAVITY * flight
+    v_on = v_off - GRAVITY * flight
+    out = np.empty(len(t))
+    i = (half - n[0]).astype(int)  # each frame's half-stride, as an index into n
+    tau = t - t_off[i]
+    air = tau >= 0.0
+    j = i[air]
+    out[air] = z_off[j] + v_off[j] * tau[air] - 0.5 * GRAVITY * tau[air] ** 2
+    # Stance m: z'' = -g + a sin(pi s) + b sin(2 pi s), s = (t - t_on) / T: a from the impulse
+    # (v_on -> v_off), b from the height it must end at; both vanish at the ends (z'' = -g).
+    m = i[~air]
+    period = beta / freq
+    tt = t[~air] - t_on[m]
+    v0 = v_on[m - 1]
+    a = (v_off[m] - v0 + GRAVITY * period) * np.pi / (2.0 * period)
+    free = z_on[m] + v0 * period - 0.5 * GRAVITY * period**2 + a * period**2 / np.pi
+    b = (z_off[m] - free) * 2.0 * np.pi / period**2
+    w1, w2 = np.pi / period, 2.0 * np.pi / period
+    out[~air] = (z_on[m] + v0 * tt - 0.5 * GRAVITY * tt**2
+                 + a / w1 * (tt - np.sin(w1 * tt) / w1) + b / w2 * (tt - np.sin(w2 * tt) / w2))
+    return out
 
 
 def _build_gait(style: _GaitStyle, t: np.ndarray, fps: float, p: dict[str, float]) -> _Built:
@@ -691,14 +776,22 @@ def _build_gait(style: _GaitStyle, t: np.ndarray, fps: float, p: dict[str, float
     yaw0 = p["direction"] * _DEG
     turn = p.get("turn", 0.0) * _DEG
     back = _gait_back(style, speed)
-    base = _run_base(style, speed) if style.bob[0] > 0 else 0.0
     plan = _feet_plan(t, style, speed, yaw0, turn, back)
     root, xy, pelvis_yaw = _gait_root(t, plan, style, speed, amp, yaw0, turn)
-    z = _gait_height(t, plan, root, xy, style, speed, base)
+    reach = _LEG_SOFT
+    if style.stance_knee is None:
+        z = _walk_height(plan, root, xy, style)
+    else:
+        z = _run_height(t, style, speed, amp, yaw0, turn, back)
+        # The swing leg's footstep plan is in the world, and a flight carries the hip over it:
+        # late in the swing the foot passes out of reach by up to a centimetre. From the
+        # stance's straightest knee on, the leg nears full extension softly instead of at the
+        # last millimetres, which jerked the knee; the stance stays within it, so it is exact.
+        reach = float(_leg_length(min(style.stance_knee) * _DEG))
     pelvis = np.column_stack([xy, z])
     pose = _Pose(len(t))
     hip_ext = np.stack([plan["yaw"][0] - pelvis_yaw, -(plan["yaw"][1] - pelvis_yaw)])
-    _solve_legs(pose, root, pelvis, plan["ankle"], plan["foot"], plan["toe"], hip_ext)
+    _solve_legs(pose, root, pelvis, plan["ankle"], plan["foot"], plan["toe"], hip_ext, reach)
     if style.swing_dorsiflexion is not None:
         _limit_swing_dorsiflexion(pose, plan["swing"], *style.swing_dorsiflexion)
     # Arms swing against the legs; the chest counter-rotates the pelvis; the head stays level.
