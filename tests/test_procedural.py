@@ -224,16 +224,32 @@ def test_walk_turns_at_the_requested_rate():
     assert planted_speeds(generate("walk", 960, 120.0, {"turn": 20.0})).max() < 0.05
 
 
+def joint_angle_deg(points: np.ndarray, a: str, at: str, b: str) -> np.ndarray:
+    """The angle (deg) at joint `at` between the directions to joints `a` and `b`."""
+    u = points[..., J[a], :] - points[..., J[at], :]
+    w = points[..., J[b], :] - points[..., J[at], :]
+    cos = np.sum(u * w, -1) / np.linalg.norm(u, axis=-1) / np.linalg.norm(w, axis=-1)
+    return np.degrees(np.arccos(cos))
+
+
 def ankle_dorsiflexion_deg(motion, side: str) -> np.ndarray:
     """(F,) dorsiflexion from the joints alone: the rest angle between shin and foot (knee to
     ankle, ankle to ball) less the frame's."""
-    def angle(p):
-        u = p[..., J[f"{side}_knee"], :] - p[..., J[f"{side}_ankle"], :]
-        w = p[..., J[f"{side}_foot"], :] - p[..., J[f"{side}_ankle"], :]
-        cos = np.sum(u * w, -1) / np.linalg.norm(u, axis=-1) / np.linalg.norm(w, axis=-1)
-        return np.degrees(np.arccos(cos))
+    names = (f"{side}_knee", f"{side}_ankle", f"{side}_foot")
+    return joint_angle_deg(REFERENCE_REST_JOINTS, *names) - joint_angle_deg(joints(motion), *names)
 
-    return angle(REFERENCE_REST_JOINTS) - angle(joints(motion))
+
+def knee_flexion_deg(motion, side: str) -> np.ndarray:
+    """(F,) the angle between thigh and shin (0 = straight), from the joints alone."""
+    return 180.0 - joint_angle_deg(joints(motion), f"{side}_hip", f"{side}_knee", f"{side}_ankle")
+
+
+def running_legs(speed: float):
+    """(motion, side, that foot's lowest sole point above the ground (F,)) for each leg of a
+    4 s run at `speed`, 120 fps, mirrored so that the right leg's plan is checked too."""
+    m = generate("run", 480, 120.0, {"speed": speed}, mirror=True)
+    h = sole_heights(m)
+    return [(m, side, h[:, k].min(-1)) for k, side in enumerate(("left", "right"))]
 
 
 @pytest.mark.parametrize("speed", [2.0, 3.0, 4.5])
@@ -241,23 +257,12 @@ def test_running_swing_ankle_stays_in_its_range(speed):
     # Running swing dorsiflexes the ankle 10-20 deg; the footstep plan's swing pitch on a knee
     # folded to 120 deg gave 37, 48 and 68 deg at these speeds, where Anny's foot sinks into
     # its shin (a trouser hem there was swallowed: docs/simulator.md, "The ankle").
-    m = generate("run", 480, 120.0, {"speed": speed}, mirror=True)
-    h = sole_heights(m)
-    for k, side in enumerate(("left", "right")):
+    for m, side, sole in running_legs(speed):
         dorsi = ankle_dorsiflexion_deg(m, side)
-        airborne = h[:, k].min(-1) > 0.03
+        airborne = sole > 0.03
         assert airborne.sum() > 0.2 * m.n_frames
         assert dorsi[airborne].max() < 26.0, dorsi[airborne].max()
         assert dorsi[airborne].max() > 15.0  # the foot still comes up to clear the ground
-
-
-def knee_flexion_deg(motion, side: str) -> np.ndarray:
-    """(F,) the angle between thigh and shin (0 = straight), from the joints alone."""
-    j = joints(motion)
-    hip, knee, ankle = (j[:, J[f"{side}_{n}"]] for n in ("hip", "knee", "ankle"))
-    u, w = hip - knee, ankle - knee
-    cos = np.sum(u * w, -1) / np.linalg.norm(u, axis=-1) / np.linalg.norm(w, axis=-1)
-    return 180.0 - np.degrees(np.arccos(cos))
 
 
 @pytest.mark.parametrize("speed", [2.0, 3.0, 4.5])
@@ -266,11 +271,9 @@ def test_running_knees_are_a_runners(speed):
     # old pelvis height (a bob about the lowest height the swing leg could reach its footstep
     # from) bent the stance knee to 59, 72 and 88 deg at these speeds (docs/simulator.md, "The
     # running gait"). Measured now: 54, 56 and 58; swing 105, 109 and 115.
-    m = generate("run", 480, 120.0, {"speed": speed}, mirror=True)
-    h = sole_heights(m)
-    for k, side in enumerate(("left", "right")):
+    for m, side, sole in running_legs(speed):
         flexion = knee_flexion_deg(m, side)
-        planted = h[:, k].min(-1) < 0.002
+        planted = sole < 0.002
         assert planted.sum() > 0.2 * m.n_frames
         assert flexion[planted].max() < 60.0, flexion[planted].max()
         assert 95.0 < flexion[~planted].max() < 120.0, flexion[~planted].max()

@@ -27,8 +27,8 @@ Actions:
 - `run`: a running gait with a flight phase between steps; parameters as `walk`. The pelvis
   flies ballistically from each toe-off to the next touch-down, at heights that the knee's
   flexion there sets, and over each stance the ground pushes it with a smooth force that
-  turns the landing into the next take-off (a runner's 7 cm of rise and fall, the stance knee
-  bent 55-60 degrees at most). In swing the foot turns toes-down about its ankle where it
+  turns the landing into the next take-off (a runner's 7 cm of rise and fall; the stance knee
+  bends at most 54-58 degrees). In swing the foot turns toes-down about its ankle where it
   would pass 15 degrees of dorsiflexion, nearing 25 at most (a runner's swing: 10-20 degrees).
 - `jump`: stand, countermovement, push-off, ballistic flight, landing absorption, recovery,
   repeated; `height` (0.05 to 0.4 m, default 0.2) is how far the soles clear the ground at the
