@@ -292,6 +292,9 @@ def test_running_flight_is_ballistic(speed):
     assert flight.sum() > 0.05 * m.n_frames
     np.testing.assert_allclose(curvature[flight], -9.81, atol=0.05)
     assert 0.05 < z.max() - z.min() < 0.10, z.max() - z.min()
+    # On the ground it only pushes, peaking at a runner's 2-3.5 body weights (measured 2.3-3.1).
+    body_weights = (curvature + 9.81) / 9.81
+    assert body_weights.min() > -1e-3 and 2.0 < body_weights.max() < 3.5, body_weights.max()
 
 
 # -- jump and spin ----------------------------------------------------------------------------
