@@ -609,17 +609,18 @@ def _feet_plan(
             pitch = np.where(rise, _quintic(u, beta, sw_peak, (to, rate, 0.0),
                                             (to + 10 * _DEG, 0.0, 0.0)), pitch)
         roll = np.where(stance, _smootherstep((s_st - f0) / (f1 - f0)), 1.0 - _smootherstep(s_sw))
-        # Skewed smootherstep (still C2, monotonic): the foot leaves and arrives briskly, so it
-        # neither trails far behind the hip after toe-off nor reaches far ahead before landing.
-        blend = (_smootherstep(s_sw) + style.skew * s_sw**3 * (1 - s_sw) ** 3 * (1 - 2 * s_sw))[
-            :, None
-        ]
-        if style.stance_knee is not None:
+        if style.stance_knee is None:
+            # Skewed smootherstep (still C2, monotonic): the foot leaves and arrives briskly, so
+            # it neither trails far behind the hip after toe-off nor reaches far ahead before
+            # landing.
+            blend = _smootherstep(s_sw) + style.skew * s_sw**3 * (1 - s_sw) ** 3 * (1 - 2 * s_sw)
+        else:
             # Running: smoothstep, which arrives at its footprint with the foot still braking
             # (C1 at touch-down). A smootherstep's foot is nearly there by 80 % of the swing,
             # while the hip, in flight, is half a metre behind: out of reach for a runner's
             # pelvis height, which is what kept the run crouched.
-            blend = (s_sw * s_sw * (3.0 - 2.0 * s_sw))[:, None]
+            blend = s_sw * s_sw * (3.0 - 2.0 * s_sw)
+        blend = blend[:, None]
         pivot = np.where(
             stance[:, None],
             heel0 + roll[:, None] * (ball0 - heel0),
@@ -707,17 +708,6 @@ def _walk_height(plan: dict, root: np.ndarray, xy: np.ndarray, style: _GaitStyle
     return _softmin(np.stack([reach[0], reach[1], cap], axis=-1), 0.015)[0]
 
 
-def _stance_height(
-    t: np.ndarray, style: _GaitStyle, speed: float, amp: float, yaw0: float, turn: float,
-    back: float, k: int, knee: float,
-) -> np.ndarray:
-    """Running: the pelvis height (F,) at which leg k reaches its footstep at times t with the
-    knee bent by `knee` (radians)."""
-    plan = _feet_plan(t, style, speed, yaw0, turn, back)
-    root, xy, _ = _gait_root(t, plan, style, speed, amp, yaw0, turn)
-    return _hip_room(plan, root, xy, k, _leg_length(knee))
-
-
 def _run_height(
     t: np.ndarray, style: _GaitStyle, speed: float, amp: float, yaw0: float, turn: float,
     back: float,
@@ -736,13 +726,16 @@ def _run_height(
     legs = (n % 2).astype(int)
     t_on = (0.5 * n - _GAIT_START) / freq
     t_off = (0.5 * n + beta - _GAIT_START) / freq
+    # Every touch-down and toe-off at once: the height at which its leg reaches the footstep.
+    events = np.concatenate([t_on, t_off])
+    plan = _feet_plan(events, style, speed, yaw0, turn, back)
+    root, xy, _ = _gait_root(events, plan, style, speed, amp, yaw0, turn)
     knee_on, knee_off = (a * _DEG for a in style.stance_knee)
-    z_on = np.empty(len(n))
-    z_off = np.empty(len(n))
-    for k in (0, 1):
-        sel = legs == k
-        z_on[sel] = _stance_height(t_on[sel], style, speed, amp, yaw0, turn, back, k, knee_on)
-        z_off[sel] = _stance_height(t_off[sel], style, speed, amp, yaw0, turn, back, k, knee_off)
+    length = np.repeat(_leg_length(np.array([knee_on, knee_off])), len(n))
+    leg = np.concatenate([legs, legs])
+    room = np.where(leg == 0, _hip_room(plan, root, xy, 0, length),
+                    _hip_room(plan, root, xy, 1, length))
+    z_on, z_off = room[: len(n)], room[len(n):]
     # A slow run's toe-off foot, up on its ball close behind the hip, would lift the pelvis
     # well above touch-down's; the body leaves no higher than it landed (+ _TAKE_OFF_RISE).
     z_off = np.minimum(z_off, z_on + _TAKE_OFF_RISE)
