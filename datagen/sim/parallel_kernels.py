@@ -31,6 +31,7 @@ from datagen.sim.kernels import (
     hash_cell,
     limit_after_contact_one,
     self_cell,
+    self_pair_target,
     sort_cells,
     spring_force,
     vec3,
@@ -105,8 +106,9 @@ def collide_moved(
 
 
 @ti.func
-def self_push(i: ti.i32, x: V3, w: F1, owner: I1, rest: V3, starts: I1, items: I1,
-              inv_cell: REAL, mask: ti.i32, radius: REAL, min_rest: REAL) -> vec3:
+def self_push(i: ti.i32, x: V3, xp: V3, w: F1, owner: I1, rest: V3, starts: I1, items: I1,
+              inv_cell: REAL, mask: ti.i32, radius: REAL, min_rest: REAL,
+              recover: REAL) -> vec3:
     """Vertex i's share of pushing it and every nearby vertex of its garment apart to `radius`
     (kernels.self_collide_one, seen from i's side and reading positions as they are), averaged
     over the pairs it is in."""
@@ -127,8 +129,10 @@ def self_push(i: ti.i32, x: V3, w: F1, owner: I1, rest: V3, starts: I1, items: I
                     wsum = w[i] + w[j]
                     if wsum > 0.0 and (rest[j] - rest[i]).norm() > min_rest:
                         dist = ti.sqrt(d2)
-                        total -= w[i] * (radius - dist) / (dist * wsum) * d
-                        pairs += 1
+                        target = self_pair_target(xp[j] - xp[i], radius, recover)
+                        if dist < target:
+                            total -= w[i] * (target - dist) / (dist * wsum) * d
+                            pairs += 1
     if pairs > 1:
         total /= pairs
     return total
@@ -141,9 +145,9 @@ SCAN_BLOCK = 256
 
 
 @ti.kernel
-def self_collide_parallel(x: V3, w: F1, owner: I1, rest: V3, counts: I1, starts: I1,
+def self_collide_parallel(x: V3, xp: V3, w: F1, owner: I1, rest: V3, counts: I1, starts: I1,
                           items: I1, scan: I1, push: V3, inv_cell: REAL, mask: ti.i32,
-                          radius: REAL, min_rest: REAL):
+                          radius: REAL, min_rest: REAL, recover: REAL):
     """kernels.self_collide on a parallel backend. The hashed grid is built in parallel: counts
     by atomic adds, a blocked prefix sum (`scan`: one entry per SCAN_BLOCK cells, and one), the
     vertices filed by atomic cursors and each cell's list then sorted by index, so the grid and
@@ -173,8 +177,8 @@ def self_collide_parallel(x: V3, w: F1, owner: I1, rest: V3, counts: I1, starts:
         items[starts[c] + ti.atomic_add(counts[c], 1)] = i
     sort_cells(starts, items, n_cells)
     for i in x:
-        push[i] = self_push(i, x, w, owner, rest, starts, items, inv_cell, mask, radius,
-                            min_rest)
+        push[i] = self_push(i, x, xp, w, owner, rest, starts, items, inv_cell, mask, radius,
+                            min_rest, recover)
     for i in x:
         x[i] += push[i]
 

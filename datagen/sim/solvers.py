@@ -421,15 +421,16 @@ class ClothSolver:
                       self.layer_count, self.effects.friction, self.parallel)
         if self.use_self:
             if self.parallel:
-                self._run("self_collision", PK.self_collide_parallel, self.x, self.w,
+                self._run("self_collision", PK.self_collide_parallel, self.x, self.xp, self.w,
                           self.s_owner, self.s_rest, self.s_counts, self.s_starts, self.s_items,
                           self.s_scan, self.s_push, self.self_inv_cell, self.s_mask,
-                          self.self_radius, self.self_min_rest)
+                          self.self_radius, self.self_min_rest,
+                          self.settings.recover_speed * h)
                 return
-            self._run("self_collision", K.self_collide, self.x, self.w, self.s_owner,
+            self._run("self_collision", K.self_collide, self.x, self.xp, self.w, self.s_owner,
                       self.s_rest, self.s_counts, self.s_starts, self.s_items,
-                      self.self_inv_cell, self.s_mask,
-                      self.self_radius, self.self_min_rest)
+                      self.self_inv_cell, self.s_mask, self.self_radius, self.self_min_rest,
+                      self.settings.recover_speed * h)
 
     # -- state -------------------------------------------------------------------------------
     def get_state(self) -> tuple[np.ndarray, np.ndarray]:
