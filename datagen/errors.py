@@ -52,15 +52,17 @@ class InputError(DatagenError):
 class RejectedSequence(DatagenError):
     """A sequence that cannot be made valid (an arm through the torso): recorded, not written."""
 
-    def __init__(self, stage: str, reason: str, frames: tuple[int, int] | None = None) -> None:
+    def __init__(self, stage: str, reason: str, frames: tuple[int, int] | None = None,
+                 runs: int = 1) -> None:
         self.stage = stage
         self.reason = reason
         self.frames = frames
+        self.runs = runs  # simulations tried before giving up (the escalation ladder's rungs)
         where = f" (frames {frames[0]}-{frames[1]})" if frames else ""
         super().__init__(f"rejected at {stage}: {reason}{where}")
 
     def __reduce__(self):
-        return (RejectedSequence, (self.stage, self.reason, self.frames))
+        return (RejectedSequence, (self.stage, self.reason, self.frames, self.runs))
 
 
 def user_errors(func):

@@ -3,6 +3,7 @@ simulated once more one quality preset up (datagen.pipeline.stages.simulate_with
 
 from __future__ import annotations
 
+import pickle
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -14,9 +15,11 @@ from datagen import qa
 from datagen.errors import RejectedSequence
 from datagen.pipeline.stages import (
     SequenceRecord,
+    mark_rejected,
     next_rung,
     reject_over_qa_bounds,
     simulate_within_bounds,
+    simulation_runs,
 )
 from datagen.sim import simulate as sim_module
 from datagen.sim.fabrics import FABRICS
@@ -147,6 +150,7 @@ def test_a_run_within_its_bounds_is_not_simulated_again(monkeypatch):
     calls = _counting_simulate(monkeypatch)
     result = simulate_within_bounds(garments, track, SimOptions(settle_seconds=0.0))
     assert len(calls) == 1 and "escalated_from" not in result.report
+    assert simulation_runs(result) == 1
 
 
 def test_escalation_climbs_until_a_run_keeps_its_bounds(monkeypatch):
@@ -180,9 +184,11 @@ def test_a_sequence_over_its_bound_on_every_rung_is_rejected_naming_every_run(mo
     assert (result.report["substeps"], result.report["iterations"]) == (80, 16)
     assert qa.breaches(result.qa)
     record = SequenceRecord(spec=SceneSpec(0, 0, "seq"), status="ok", garments=garments,
-                            sim=result)
+                            sim=result, sim_runs=simulation_runs(result))
+    assert record.sim_runs == 4
     rejected = reject_over_qa_bounds(record)
     assert rejected.status == "rejected" and rejected.stage == "qa"
+    assert rejected.sim_runs == 4  # the gate's record still says what the sequence cost
     assert rejected.reason.startswith(
         "fabric springs strained beyond their fabric's max_strain (qa/over_strain_share ")
     assert ("; simulated again at reference 80x16, sor 1, after the runs at xpbd draft 10x2, "
@@ -229,6 +235,12 @@ def test_a_run_unstable_on_every_rung_is_rejected_naming_every_run(monkeypatch):
     with pytest.raises(RejectedSequence) as info:
         simulate_within_bounds(garments, None, options)
     assert info.value.stage == "simulate"
+    # Four runs (draft, default, reference, the reference's steps doubled), also after the
+    # trip to the parent process a dataset's worker sends it on, and on the rejected record.
+    assert info.value.runs == 4 and pickle.loads(pickle.dumps(info.value)).runs == 4
+    record = SequenceRecord(spec=SceneSpec(0, 0, "seq"), status="ok", garments=garments)
+    mark_rejected(record, info.value)
+    assert record.sim_runs == 4 and record.garments is None
     message = info.value.reason
     assert message.startswith("unstable at frame 1: ")
     assert ("; simulated again at reference 4000x2, sor 1, after the runs at explicit draft "

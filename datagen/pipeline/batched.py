@@ -26,6 +26,7 @@ from datagen.pipeline.stages import (
     run_sequence,
     sim_options_from_spec,
     simulate_within_bounds,
+    simulation_runs,
 )
 from datagen.recipe import BodyConfig
 from datagen.spec import SceneSpec, SimSpec
@@ -69,6 +70,7 @@ def _simulate_together(records: list[SequenceRecord], options: SimOptions) -> No
             try:
                 record.sim = simulate_within_bounds(record.garments, record.body, options,
                                                     first=outcome)
+                record.sim_runs = simulation_runs(record.sim)
             except RejectedSequence as exc:
                 mark_rejected(record, exc)
             record.timings["simulate"] = share + time.perf_counter() - t

@@ -39,6 +39,9 @@ class SequenceRecord:
     reason: str | None = None
     frames: tuple[int, int] | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    # Cloth simulations run for it: 1, more where it was simulated again at finer steps
+    # (simulate_within_bounds), also when it was rejected in the end; 0 before simulation.
+    sim_runs: int = 0
     # The machine and package versions of the worker that made it (datagen.environment).
     environment: dict[str, object] = field(default_factory=dict)
 
@@ -95,18 +98,29 @@ def run_sequence(
             record.timings["outfit"] = time.perf_counter() - t
             if simulate_cloth:
                 t = time.perf_counter()
-                record.sim = simulate_within_bounds(record.garments, record.body,
-                                                    sim_options_from_spec(spec, fabrics))
-                record.timings["simulate"] = time.perf_counter() - t
+                try:
+                    record.sim = simulate_within_bounds(record.garments, record.body,
+                                                        sim_options_from_spec(spec, fabrics))
+                finally:
+                    record.timings["simulate"] = time.perf_counter() - t
+                record.sim_runs = simulation_runs(record.sim)
     except RejectedSequence as exc:
         mark_rejected(record, exc)
     return record
+
+
+def simulation_runs(sim: SimResult) -> int:
+    """How many times simulate_within_bounds simulated the sequence to get `sim`: 1, plus each
+    run it did not keep (the escalations)."""
+    return 1 + len(sim.report.get("escalations") or [])
 
 
 def mark_rejected(record: SequenceRecord, exc: RejectedSequence) -> None:
     """Turn a record into the rejection `exc` names (its data dropped, its timings kept)."""
     record.status = "rejected"
     record.stage, record.reason, record.frames = exc.stage, exc.reason, exc.frames
+    if exc.stage == "simulate":
+        record.sim_runs = exc.runs
     record.body = record.garments = record.sim = None
 
 
@@ -168,7 +182,8 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
                 if not dropped:
                     raise
                 raise RejectedSequence(exc.stage, exc.reason + _runs_note(
-                    current.steps_label(fps), dropped), exc.frames) from None
+                    current.steps_label(fps), dropped), exc.frames,
+                    runs=len(dropped) + 1) from None
             dropped.append({"settings": settings, "reason": exc.reason, "wall_time_s": None})
         else:
             found = qa.breaches(sim.qa)
@@ -214,7 +229,7 @@ def reject_over_qa_bounds(record: SequenceRecord) -> SequenceRecord:
     return SequenceRecord(
         spec=record.spec, status="rejected", stage="qa",
         reason=reason, frames=(frame, frame), timings=record.timings,
-        environment=record.environment)
+        sim_runs=record.sim_runs, environment=record.environment)
 
 
 def over_qa_bounds(record: SequenceRecord,
