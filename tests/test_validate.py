@@ -418,6 +418,37 @@ def test_neckline_slip_measures_how_far_a_neckline_left_the_neck():
         neckline_slip(frames, ring[:5], np.stack([neck, neck]), neck)
 
 
+def test_a_rejection_as_unstable_says_which_neckline_had_slid_off_first():
+    """simulate.slid_necklines_note, the clause a rejection as unstable ends with: the ring of
+    the test above, as the neckline of a top that comes second in the outfit (its rows after
+    a 5-vertex garment without one). Dropped 25 cm (16.93 cm of slip, under the 20 cm bound)
+    nothing is said; dropped 40 cm, sqrt(0.1^2 + 0.4^2) - 0.1 = 31.23 cm, it is named. A
+    track without a neck joint (a bare sphere) says nothing. (The CLOTH3D sample's sequence 3
+    ran away at the elbow once its strap top had slid off: docs/simulator.md.)"""
+    from types import SimpleNamespace
+
+    from datagen.sim.simulate import slid_necklines_note
+    from datagen.types import Garment
+
+    angle = np.linspace(0.0, 2.0 * np.pi, 24, endpoint=False)
+    ring = np.stack([0.1 * np.cos(angle), 0.1 * np.sin(angle), np.zeros(24)], axis=1)
+    neck = np.array([0.0, 0.0, 1.45])
+    faces = np.zeros((0, 3), np.int32)
+    other = Garment("lower", "trousers", np.zeros((5, 3)), faces, "denim")
+    top = Garment("upper", "top", ring + neck, faces, "cotton", loops={"neck": np.arange(24)})
+    track = SimpleNamespace(neck=np.repeat(neck[None], 3, axis=0), rest_neck=neck)
+    ranges = [(0, 5), (5, 29)]
+
+    def outfit(drop):
+        return np.concatenate([np.full((5, 3), 9.0), ring + neck - [0.0, 0.0, drop]])
+
+    assert slid_necklines_note([other, top], ranges, outfit(0.25), track, 2) == ""
+    assert slid_necklines_note([other, top], ranges, outfit(0.40), track, 2) == (
+        "; the top's neckline had slid 0.31 m off the shoulders by then")
+    bare = SimpleNamespace(neck=None, rest_neck=None)  # a sphere's track
+    assert slid_necklines_note([other, top], ranges, outfit(0.40), bare, 2) == ""
+
+
 def _slipped_record():
     """A synthetic sequence whose t-shirt's neckline is off to one side at frame 6: the
     synthetic body's neck joint lies 0.57 m below that neckline (its joints are spread evenly

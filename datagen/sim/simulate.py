@@ -415,6 +415,11 @@ class ColliderTrack:
     # frames (the hip, knee and elbow), for the part guard (kernels.fold_near); a batch's
     # scenes' joined (datagen.sim.batch); None where none fold.
     fold_fields: FoldFields | JoinedFoldFields | None = None
+    # A body's neck joint at each frame (F, 3) and at rest (3,), for the note a rejection as
+    # unstable gives where a neckline had slid off the shoulders (slid_necklines_note); None
+    # for other colliders and a batch's joined track.
+    neck: np.ndarray | None = None
+    rest_neck: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -432,8 +437,11 @@ def track_of(body: BodySequence) -> ColliderTrack:
              for name, (side_a, side_b) in zip(FLEXION_JOINTS, FLEXION_SIDES, strict=True)
              if by_joint.get(name)]
     fields = FoldFields(body.vertices, faces, face_parts, folds, PART_INDEX) if folds else None
+    from datagen.qa import NECK_JOINT
+
     return ColliderTrack(body.vertices, faces, body.collider_face_mask, body.fps,
-                         body.lead_in_frames, face_parts, fields)
+                         body.lead_in_frames, face_parts, fields,
+                         neck=body.joints[:, NECK_JOINT], rest_neck=body.rest.joints[NECK_JOINT])
 
 
 def body_start_transform(body: BodySequence) -> tuple[np.ndarray, np.ndarray]:
@@ -723,7 +731,9 @@ class _Simulation:
                 raise RejectedSequence(
                     "simulate",
                     f"unstable at frame {frame}: {reason}, still after {MAX_RETRIES} retries "
-                    f"with up to {self.substeps * 2**MAX_RETRIES} substeps",
+                    f"with up to {self.substeps * 2**MAX_RETRIES} substeps"
+                    + slid_necklines_note(self.garments, self.model.garment_ranges,
+                                          x0, self.body, f0),
                     (max(f0 - lead_in, 0), frame),
                 )
             else:
@@ -839,6 +849,32 @@ def _effect_costs(costs: dict[str, float]) -> dict[str, float]:
     if fused > 0:
         return {"all": fused}
     return dict(costs)
+
+
+def slid_necklines_note(garments: list[Garment], ranges, x: np.ndarray,
+                        track: ColliderTrack | None, body_frame: int) -> str:
+    """'; the top's neckline had slid 0.34 m off the shoulders by then' for each garment whose
+    neckline (qa.neckline_slip) was past qa.NECKLINE_SLIP_MAX in the outfit's positions `x`
+    (garment k at rows ranges[k]) at `body_frame` of `track`, else empty. A strap top that slid
+    down the arms and is caught at the elbow runs away there, and a rejection as unstable
+    should say what came first (docs/simulator.md, "Old overlaps separate at the recovery
+    speed"). Empty for a collider without a neck joint (a sphere, a batch's joined track)."""
+    from datagen import qa
+
+    if track is None or track.neck is None or track.rest_neck is None:
+        return ""
+    notes = []
+    for g, (lo, _) in zip(garments, ranges, strict=True):
+        loop = g.loops.get("neck")
+        if loop is None or len(loop) == 0:
+            continue
+        loop = np.asarray(loop, dtype=np.int64)
+        slip = float(qa.neckline_slip(x[lo + loop][None], g.vertices[loop],
+                                      track.neck[body_frame][None], track.rest_neck)[0])
+        if slip > qa.NECKLINE_SLIP_MAX:
+            notes.append(f"; the {g.category}'s neckline had slid {slip:.2f} m off the "
+                         "shoulders by then")
+    return "".join(notes)
 
 
 def simulate(garments: list[Garment], body: BodySequence | ColliderTrack | None,
