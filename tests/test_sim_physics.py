@@ -1733,11 +1733,12 @@ def test_simulate_rejects_a_bad_effects_request_before_any_work(tmp_path, monkey
     assert not out.exists()
 
 
-def _folded_sheet(monkeypatch, parallel: bool, gap: float):
-    """A sheet folded onto itself, its upper layer `gap` radii above the lower one and shifted
-    off the lower's grid, turned to no axis; an xpbd solver with self-collision (built as on a
-    parallel backend if `parallel`), and its fold pairs (vertices within `within` radii of each
-    other that are far apart in the fabric)."""
+def _folded_sheet(monkeypatch, parallel: bool):
+    """An xpbd solver with self-collision for a sheet (built as on a parallel backend if
+    `parallel`); `folded(gap)`, the sheet folded onto itself with its upper layer `gap` radii
+    above the lower one, shifted off the lower's grid and turned to no axis; and
+    `fold_pairs(points, within)`, the pairs closer than `within` radii that are far apart in
+    the fabric (a fold, not neighbours)."""
     from scipy.spatial import cKDTree
     from scipy.spatial.transform import Rotation
 
@@ -1778,7 +1779,7 @@ def test_self_collision_separates_the_layers_of_a_folded_sheet(monkeypatch, para
     and a vertex that was near no such pair does not move. On a parallel backend
     (parallel_kernels.self_collide_parallel: every vertex pushed at once, by its averaged
     share) one pass separates the layers too."""
-    solver, folded, fold_pairs = _folded_sheet(monkeypatch, parallel, 0.4)
+    solver, folded, fold_pairs = _folded_sheet(monkeypatch, parallel)
     x = folded(0.4)
     before = fold_pairs(x)
     assert len(before) > 500
@@ -1801,7 +1802,7 @@ def test_self_collision_separates_an_old_overlap_at_the_recovery_speed(monkeypat
     it started. Pushed fully to the radius every substep, such a fold turned 2.5 mm into 20 m/s
     at 160 substeps a frame and set a cropped top tucked at a trouser waistband running away
     in a kick (docs/simulator.md, "Self-collision")."""
-    solver, folded, fold_pairs = _folded_sheet(monkeypatch, parallel, 0.4)
+    solver, folded, fold_pairs = _folded_sheet(monkeypatch, parallel)
     start = folded(0.4)
     crushed = folded(0.2)  # this substep pressed the layers closer still
     pairs = fold_pairs(start)

@@ -428,6 +428,7 @@ class ColliderTrack:
 
 def track_of(body: BodySequence) -> ColliderTrack:
     from datagen.body.parts import FLEXION_JOINTS, FLEXION_SIDES, PART_INDEX
+    from datagen.qa import NECK_JOINT
 
     faces = body.rest.faces
     face_parts = body.rest.part_labels[faces[:, 0]]
@@ -437,8 +438,6 @@ def track_of(body: BodySequence) -> ColliderTrack:
              for name, (side_a, side_b) in zip(FLEXION_JOINTS, FLEXION_SIDES, strict=True)
              if by_joint.get(name)]
     fields = FoldFields(body.vertices, faces, face_parts, folds, PART_INDEX) if folds else None
-    from datagen.qa import NECK_JOINT
-
     return ColliderTrack(body.vertices, faces, body.collider_face_mask, body.fps,
                          body.lead_in_frames, face_parts, fields,
                          neck=body.joints[:, NECK_JOINT], rest_neck=body.rest.joints[NECK_JOINT])
@@ -869,10 +868,10 @@ def slid_necklines_note(garments: list[Garment], ranges, x: np.ndarray,
         if loop is None or len(loop) == 0:
             continue
         loop = np.asarray(loop, dtype=np.int64)
-        slip = float(qa.neckline_slip(x[lo + loop][None], g.vertices[loop],
-                                      track.neck[body_frame][None], track.rest_neck)[0])
-        if slip > qa.NECKLINE_SLIP_MAX:
-            notes.append(f"; the {g.category}'s neckline had slid {slip:.2f} m off the "
+        breach = qa.neckline_breach(x[lo + loop][None], g.vertices[loop],
+                                    track.neck[body_frame][None], track.rest_neck, g.category)
+        if breach is not None:
+            notes.append(f"; the {g.category}'s neckline had slid {breach.value:.2f} m off the "
                          "shoulders by then")
     return "".join(notes)
 
