@@ -65,6 +65,20 @@ class RejectedSequence(DatagenError):
         return (RejectedSequence, (self.stage, self.reason, self.frames, self.runs))
 
 
+class SlidOffShoulders(RejectedSequence):
+    """A run stopped where a garment's neckline had slid off the shoulders (the simulator's
+    neckline guard, SimOptions.neckline_guard): stage "qa", as the dataset's gate rejects such
+    a sequence. Its own type, because the escalation ladder treats it apart from the bounds
+    that the next rung past the top preset can still resolve (pipeline.stages)."""
+
+    def __init__(self, reason: str, frames: tuple[int, int] | None = None,
+                 runs: int = 1) -> None:
+        super().__init__("qa", reason, frames, runs)
+
+    def __reduce__(self):
+        return (SlidOffShoulders, (self.reason, self.frames, self.runs))
+
+
 def user_errors(func):
     """A CLI command that prints a DatagenError as one line and exits 2, without a traceback."""
 

@@ -4,9 +4,11 @@ simulated once more one quality preset up (datagen.pipeline.stages.simulate_with
 from __future__ import annotations
 
 import pickle
+import re
 import sys
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -335,3 +337,91 @@ def test_simulate_writes_a_scene_over_a_bound_but_warns_that_a_dataset_would_rej
             "frame 9, bound 0.001)") in over.stderr
     assert "0.200 % of springs over their fabric's max_strain" in over.output
     assert "warning" not in run(0.0009, "within").stderr
+
+
+def _falling_top(frames: int = 12):
+    """A small cotton "top" falling freely from rest, its neckline its centre vertex, fitted
+    0.1 m beside a neck joint that stays put, far above a small sphere it never reaches. After
+    a fall of d that vertex lies sqrt(0.1^2 + d^2) from the joint against 0.1 m in the fit, so
+    its slip passes the 0.2 m bound past d = 0.283 m. n substeps of h fall g h^2 n (n + 1) / 2
+    (semi-implicit Euler from rest; air drag is off): at 20 substeps a frame (h = 1/600 s)
+    0.269 m by output frame 7 and 0.351 m by frame 8, at 40 0.268 and 0.350, so at both presets
+    output frame 8 is the first past the bound (a slip of 0.26)."""
+    top = replace(grid_sheet(8, 0.2, 1.0, name="upper"), category="top",
+                  loops={"neck": np.array([40])})  # the centre of the 9 x 9 grid
+    sv, sfaces = icosphere(0.1, 1)
+    neck = np.array([0.1, 0.0, 1.0])
+    track = ColliderTrack(np.repeat((sv + [0.0, 0.0, -5.0])[None], frames + 1, axis=0), sfaces,
+                          np.ones(len(sfaces), dtype=bool),
+                          neck=np.repeat(neck[None], frames + 1, axis=0), rest_neck=neck)
+    return [top], track, SimOptions(settle_seconds=0.0, effects=("auto", "-air_drag"))
+
+
+SLID_REASON = (r"the top's neckline slid off the shoulders \(qa/neckline_slip 0\.2\d+ at frame 8, "
+               r"bound 0\.2\); the run stopped there")
+
+
+def test_the_neckline_guard_stops_a_run_at_the_frame_a_garment_slid_off():
+    """With the guard (what a dataset whose recipe rejects asks for) the run stops at the
+    first output frame past the neckline bound, naming it as the dataset's gate does; without
+    it the run goes to its end and the gate's measure finds the garment off at its worst,
+    last frame. The stop survives the trip from a dataset's worker process."""
+    from datagen.errors import SlidOffShoulders
+    from datagen.pipeline.stages import slid_off_in
+
+    garments, track, options = _falling_top()
+    with pytest.raises(SlidOffShoulders) as info:
+        simulate(garments, track, replace(options, neckline_guard=True))
+    assert info.value.stage == "qa" and info.value.frames == (8, 8)
+    assert re.fullmatch(SLID_REASON, info.value.reason), info.value.reason
+    back = pickle.loads(pickle.dumps(info.value))
+    assert isinstance(back, SlidOffShoulders) and back.reason == info.value.reason
+    whole = simulate(garments, track, options)
+    assert whole.vertices["upper"].shape[0] == 13
+    (breach,) = slid_off_in(garments, whole, track)
+    assert breach.series == "neckline_slip" and breach.frame == 12
+    # By frame 12 (n = 240) it has fallen 0.788 m: a slip of sqrt(0.1^2 + 0.788^2) - 0.1.
+    assert breach.value == pytest.approx(0.6943, abs=2e-3)
+
+
+def test_a_garment_off_the_shoulders_goes_up_the_presets_but_not_past_the_top(monkeypatch):
+    """A garment that slid off is simulated again one preset up, as a run over a bound is
+    (a coarse run can let a strap slide that finer steps keep on: docs/simulator.md), but not
+    past the top preset, whose doubled steps are for the chaotic strain of a kick. This top
+    falls at every step: with the guard the sequence is rejected after two runs, each stopped
+    where the neckline slid off, naming both; without it the top preset's whole run is the
+    result, for the gate to judge, and says why it was simulated again."""
+    garments, track, options = _falling_top()
+    calls = _counting_simulate(monkeypatch)
+    with pytest.raises(RejectedSequence) as info:
+        simulate_within_bounds(garments, track, replace(options, neckline_guard=True))
+    assert [c.quality for c in calls] == ["default", "reference"]
+    assert info.value.stage == "qa" and info.value.runs == 2
+    first, again = info.value.reason.split("; simulated again at ")
+    assert re.fullmatch(SLID_REASON, first), first
+    assert again.startswith("reference 40x8, sor 1, after the run at xpbd default 20x4, sor "
+                            "1.6: the top's neckline slid off the shoulders (qa/neckline_slip")
+    record = SequenceRecord(spec=SceneSpec(0, 0, "seq"), status="ok", garments=garments)
+    mark_rejected(record, info.value)
+    assert (record.status, record.stage, record.sim_runs) == ("rejected", "qa", 2)
+    calls.clear()
+    result = simulate_within_bounds(garments, track, options)
+    assert [c.quality for c in calls] == ["default", "reference"]
+    assert result.report["quality"] == "reference" and simulation_runs(result) == 2
+    assert result.report["escalated_from"]["reason"].startswith(
+        "the top's neckline slid off the shoulders (qa/neckline_slip 0.")
+
+
+def test_a_dataset_that_rejects_guards_necklines_and_one_that_keeps_does_not():
+    from datagen.pipeline.dataset import _rejects
+    from datagen.pipeline.stages import sim_options_from_spec
+    from datagen.recipe import load_recipe
+
+    spec = SceneSpec(0, 0, "seq")
+    assert not sim_options_from_spec(spec).neckline_guard
+    assert sim_options_from_spec(spec, neckline_guard=True).neckline_guard
+    default = Path(__file__).parents[1] / "pipelines" / "default.yaml"
+    loaded = load_recipe(default)
+    assert loaded.recipe.simulation.qa == "reject" and _rejects(loaded)
+    keep = replace(loaded.recipe, simulation=replace(loaded.recipe.simulation, qa="keep"))
+    assert not _rejects(SimpleNamespace(recipe=keep))

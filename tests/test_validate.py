@@ -427,7 +427,7 @@ def test_a_rejection_as_unstable_says_which_neckline_had_slid_off_first():
     ran away at the elbow once its strap top had slid off: docs/simulator.md.)"""
     from types import SimpleNamespace
 
-    from datagen.sim.simulate import slid_necklines_note
+    from datagen.sim.simulate import slid_necklines, slid_necklines_note
     from datagen.types import Garment
 
     angle = np.linspace(0.0, 2.0 * np.pi, 24, endpoint=False)
@@ -436,7 +436,8 @@ def test_a_rejection_as_unstable_says_which_neckline_had_slid_off_first():
     faces = np.zeros((0, 3), np.int32)
     other = Garment("lower", "trousers", np.zeros((5, 3)), faces, "denim")
     top = Garment("upper", "top", ring + neck, faces, "cotton", loops={"neck": np.arange(24)})
-    track = SimpleNamespace(neck=np.repeat(neck[None], 3, axis=0), rest_neck=neck)
+    track = SimpleNamespace(neck=np.repeat(neck[None], 3, axis=0), rest_neck=neck,
+                            lead_in_frames=1)
     ranges = [(0, 5), (5, 29)]
 
     def outfit(drop):
@@ -447,6 +448,12 @@ def test_a_rejection_as_unstable_says_which_neckline_had_slid_off_first():
         "; the top's neckline had slid 0.31 m off the shoulders by then")
     bare = SimpleNamespace(neck=None, rest_neck=None)  # a sphere's track
     assert slid_necklines_note([other, top], ranges, outfit(0.40), bare, 2) == ""
+    # What the note and the simulator's neckline guard read: the garment and its breach, at
+    # the output frame (body frame 2 less the track's lead-in of 1).
+    ((garment, breach),) = slid_necklines([other, top], ranges, outfit(0.40), track, 2)
+    assert garment is top and breach.frame == 1
+    assert breach.value == pytest.approx(np.hypot(0.1, 0.4) - 0.1, abs=1e-6)
+    assert slid_necklines([other, top], ranges, outfit(0.25), track, 2) == []
 
 
 def _slipped_record():

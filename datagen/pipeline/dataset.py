@@ -67,10 +67,15 @@ def _templates_dir(loaded: LoadedRecipe) -> Path | None:
     return resolve_templates_dir(outfit_config(loaded).templates, loaded.base_dir)
 
 
+def _rejects(loaded: LoadedRecipe) -> bool:
+    """Whether the recipe's QA gate rejects a sequence over a bound (simulation.qa)."""
+    return loaded.recipe.simulation.qa == "reject"
+
+
 def _qa_gate(loaded: LoadedRecipe, record):
     from datagen.pipeline.stages import reject_over_qa_bounds
 
-    return reject_over_qa_bounds(record) if loaded.recipe.simulation.qa == "reject" else record
+    return reject_over_qa_bounds(record) if _rejects(loaded) else record
 
 
 def compute_sequence(recipe_path: str, index: int):
@@ -81,7 +86,8 @@ def compute_sequence(recipe_path: str, index: int):
     state = worker_state(recipe_path)
     loaded: LoadedRecipe = state["loaded"]
     record = run_sequence(sample_scene(loaded, index), state["model"], loaded.recipe.body,
-                          loaded.base_dir, _templates_dir(loaded))
+                          loaded.base_dir, _templates_dir(loaded),
+                          neckline_guard=_rejects(loaded))
     return _qa_gate(loaded, record)
 
 
@@ -96,7 +102,8 @@ def compute_sequences(recipe_path: str, indices: list[int]) -> list:
     state = worker_state(recipe_path)
     loaded: LoadedRecipe = state["loaded"]
     records = run_sequences_batched([sample_scene(loaded, i) for i in indices], state["model"],
-                                    loaded.recipe.body, loaded.base_dir, _templates_dir(loaded))
+                                    loaded.recipe.body, loaded.base_dir, _templates_dir(loaded),
+                                    neckline_guard=_rejects(loaded))
     return [_qa_gate(loaded, r) for r in records]
 
 

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from datagen.environment import environment
-from datagen.errors import RejectedSequence
+from datagen.errors import RejectedSequence, SlidOffShoulders
 from datagen.recipe import BodyConfig
 from datagen.spec import SceneSpec
 from datagen.types import BodySequence, Garment, Motion, SimResult
@@ -50,14 +50,17 @@ class SequenceRecord:
         return float(sum(self.timings.values()))
 
 
-def sim_options_from_spec(spec: SceneSpec, fabrics: dict | None = None):
+def sim_options_from_spec(spec: SceneSpec, fabrics: dict | None = None,
+                          neckline_guard: bool = False):
+    """The simulator's options for a scene; `neckline_guard` where the caller rejects a
+    sequence whose garment slid off the shoulders (SimOptions.neckline_guard)."""
     from datagen.sim.simulate import SimOptions
 
     s = spec.simulation
     return SimOptions(solver=s.solver, quality=s.quality, substeps=s.substeps,
                       iterations=s.iterations, effects=s.effects,
                       wind=tuple(s.wind) if s.wind else None, fabrics=dict(fabrics or {}),
-                      settle_seconds=s.settle_seconds)
+                      settle_seconds=s.settle_seconds, neckline_guard=neckline_guard)
 
 
 def run_sequence(
@@ -70,10 +73,13 @@ def run_sequence(
     fabrics: dict | None = None,
     motion_hook: Callable[[Motion], Motion] | None = None,
     garment_hook: Callable[[list[Garment], BodySequence], list[Garment]] | None = None,
+    neckline_guard: bool = False,
 ) -> SequenceRecord:
     """Run one sequence end to end. A RejectedSequence becomes a rejected record; any other
     error propagates (it is a bug or bad input, not a property of the scene). The hooks alter
-    the motion or the fitted garments on their way (the hard cases inject faults with them)."""
+    the motion or the fitted garments on their way (the hard cases inject faults with them).
+    `neckline_guard`: stop a run whose garment slid off the shoulders at that frame
+    (SimOptions.neckline_guard), where the caller's gate rejects such a sequence."""
     from datagen.body.sequence import build_body_sequence
     from datagen.garment.outfit import dropped_parts_for, make_outfit
     from datagen.motion.load import motion_from_spec
@@ -100,7 +106,8 @@ def run_sequence(
                 t = time.perf_counter()
                 try:
                     record.sim = simulate_within_bounds(record.garments, record.body,
-                                                        sim_options_from_spec(spec, fabrics))
+                                                        sim_options_from_spec(
+                                                            spec, fabrics, neckline_guard))
                 finally:
                     record.timings["simulate"] = time.perf_counter() - t
                 record.sim_runs = simulation_runs(record.sim)
@@ -119,7 +126,7 @@ def mark_rejected(record: SequenceRecord, exc: RejectedSequence) -> None:
     """Turn a record into the rejection `exc` names (its data dropped, its timings kept)."""
     record.status = "rejected"
     record.stage, record.reason, record.frames = exc.stage, exc.reason, exc.frames
-    if exc.stage == "simulate":
+    if exc.stage in ("simulate", "qa"):  # raised in the simulation stage (a "qa" one: its guard)
         record.sim_runs = exc.runs
     record.body = record.garments = record.sim = None
 
@@ -159,7 +166,11 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
     sequences that need it pay for the finer steps: the fast kick's trousers break the strain
     bound at `default` 20x4 in one frame of the kick (a chaotic frame: more substeps for that
     frame alone do not help), and pass at 40x8 or, as rounding falls, at 80x16
-    (docs/simulator.md, "Escalation"). The result's report names the first run's settings and
+    (docs/simulator.md, "Escalation"). A garment that slid off the shoulders (a finished run's
+    slid_off_in, or a run the neckline guard stopped, SlidOffShoulders) goes up the presets
+    but not past the top: finer steps keep some straps on that coarse ones let slide, and the
+    rung past the top is for a kick's chaotic strain (docs/simulator.md, "A slide stops the
+    run"). The result's report names the first run's settings and
     why it was not kept (`escalated_from`) and every run not kept (`escalations`); a rejection
     at the last rung names them all. `first`: the first run's outcome where it was simulated
     already (in a batch, datagen.pipeline.batched), which is then judged instead of simulating
@@ -178,7 +189,11 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
                 raise outcome
             sim = simulate(garments, body, current) if outcome is None else outcome
         except RejectedSequence as exc:
-            if up is None or exc.stage != "simulate":
+            if isinstance(exc, SlidOffShoulders):
+                up = current.escalated()  # up the presets, not past the top (docstring)
+            elif exc.stage != "simulate":
+                up = None
+            if up is None:
                 if not dropped:
                     raise
                 raise RejectedSequence(exc.stage, exc.reason + _runs_note(
@@ -187,6 +202,9 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
             dropped.append({"settings": settings, "reason": exc.reason, "wall_time_s": None})
         else:
             found = qa.breaches(sim.qa)
+            if not found:
+                found = slid_off_in(garments, sim, body)
+                up = current.escalated() if found else up
             if not found or up is None:
                 if dropped:
                     sim.report["escalated_from"] = dropped[0]
@@ -303,22 +321,34 @@ def slipped_necklines(record: SequenceRecord) -> list[Breach]:
     strap jumpsuit can slide off a moving body and hang at the elbows: physically possible,
     but not the worn garment a dataset's sequence is meant to show, and no other bound sees it
     (docs/simulator.md, "Garments that slide off")."""
+    if record.sim is None or not record.garments:
+        return []
+    return slid_off_in(record.garments, record.sim, record.body)
+
+
+def slid_off_in(garments: list[Garment], sim: SimResult,
+                body: BodySequence | ColliderTrack | None) -> list[Breach]:
+    """slipped_necklines of a simulation `sim` of `garments` on `body` (a body sequence, or a
+    track with its neck joint; none for other colliders)."""
     from datagen import qa
 
-    body = record.body
-    if body is None:  # a record without a body (cloth on a bare collider): no neck joint
+    if body is None:  # cloth on a bare collider: no neck joint
+        return []
+    neck = body.joints[:, qa.NECK_JOINT] if isinstance(body, BodySequence) else body.neck
+    rest_neck = (body.rest.joints[qa.NECK_JOINT] if isinstance(body, BodySequence)
+                 else body.rest_neck)
+    if neck is None or rest_neck is None:
         return []
     lead_in = int(body.lead_in_frames)
     found = []
-    for g in record.garments:
+    for g in garments:
         loop = g.loops.get("neck")
         if loop is None or len(loop) == 0:
             continue
         loop = np.asarray(loop, dtype=np.int64)
-        frames = record.sim.vertices[g.name][:, loop]
+        frames = sim.vertices[g.name][:, loop]
         breach = qa.neckline_breach(frames, g.vertices[loop],
-                                    body.joints[lead_in:lead_in + len(frames), qa.NECK_JOINT],
-                                    body.rest.joints[qa.NECK_JOINT], g.category)
+                                    neck[lead_in:lead_in + len(frames)], rest_neck, g.category)
         if breach is not None:
             found.append(breach)
     return found

@@ -15,8 +15,8 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from datagen.errors import InputError, RejectedSequence
-from datagen.qa import STRAIN_SHARE_MAX
+from datagen.errors import InputError, RejectedSequence, SlidOffShoulders
+from datagen.qa import STRAIN_SHARE_MAX, Breach
 from datagen.sim import backend
 from datagen.sim.collider import BodyCollider
 from datagen.sim.effects import Effects, SceneContent, resolve_effects
@@ -152,6 +152,11 @@ class SimOptions:
     # step is so fine that backward Euler no longer damps it (the study's denim sheet, 16.7 m/s
     # at 160 substeps, back under 4 m/s two frames later).
     speed_limit: float = SPEED_LIMIT
+    # Stop a run at the first output frame where a garment's neckline has slid off the
+    # shoulders (qa.neckline_breach), raising SlidOffShoulders: the dataset's gate rejects such
+    # a run whatever follows, so its remaining frames would be spent for nothing. Dataset runs
+    # whose recipe rejects (simulation.qa) set it; a scene simulated to look at runs to its end.
+    neckline_guard: bool = False
 
     def resolve_steps(self, fps: float = PRESET_FPS) -> tuple[int, int]:
         """(substeps per frame, iterations) at output rate `fps`: the caller's, else the
@@ -768,6 +773,13 @@ class _Simulation:
 
     def _record(self, body_frame: int, outputs, qa_rows) -> None:
         x, v = self._state(self.solver)
+        if self.options.neckline_guard:
+            slid = slid_necklines(self.garments, self.model.garment_ranges, x, self.body,
+                                  body_frame)
+            if slid:
+                frame = slid[0][1].frame
+                raise SlidOffShoulders("; ".join(b.reason for _, b in slid)
+                                       + "; the run stopped there", (frame, frame))
         for g, (lo, hi) in zip(self.garments, self.model.garment_ranges, strict=True):
             outputs[g.name].append(x[lo:hi].astype(np.float32))
         sd = None
@@ -850,19 +862,17 @@ def _effect_costs(costs: dict[str, float]) -> dict[str, float]:
     return dict(costs)
 
 
-def slid_necklines_note(garments: list[Garment], ranges, x: np.ndarray,
-                        track: ColliderTrack | None, body_frame: int) -> str:
-    """'; the top's neckline had slid 0.34 m off the shoulders by then' for each garment whose
-    neckline (qa.neckline_slip) was past qa.NECKLINE_SLIP_MAX in the outfit's positions `x`
-    (garment k at rows ranges[k]) at `body_frame` of `track`, else empty. A strap top that slid
-    down the arms and is caught at the elbow runs away there, and a rejection as unstable
-    should say what came first (docs/simulator.md, "Old overlaps separate at the recovery
-    speed"). Empty for a collider without a neck joint (a sphere, a batch's joined track)."""
+def slid_necklines(garments: list[Garment], ranges, x: np.ndarray,
+                   track: ColliderTrack | None, body_frame: int) -> list[tuple[Garment, Breach]]:
+    """Each garment whose neckline (qa.neckline_slip) is past qa.NECKLINE_SLIP_MAX in the
+    outfit's positions `x` (garment k at rows ranges[k]) at `body_frame` of `track`, with the
+    breach, its frame the output frame (body_frame less the track's lead-in). Empty for a
+    collider without a neck joint (a sphere, a batch's joined track)."""
     from datagen import qa
 
     if track is None or track.neck is None or track.rest_neck is None:
-        return ""
-    notes = []
+        return []
+    found = []
     for g, (lo, _) in zip(garments, ranges, strict=True):
         loop = g.loops.get("neck")
         if loop is None or len(loop) == 0:
@@ -871,9 +881,18 @@ def slid_necklines_note(garments: list[Garment], ranges, x: np.ndarray,
         breach = qa.neckline_breach(x[lo + loop][None], g.vertices[loop],
                                     track.neck[body_frame][None], track.rest_neck, g.category)
         if breach is not None:
-            notes.append(f"; the {g.category}'s neckline had slid {breach.value:.2f} m off the "
-                         "shoulders by then")
-    return "".join(notes)
+            found.append((g, replace(breach, frame=max(body_frame - track.lead_in_frames, 0))))
+    return found
+
+
+def slid_necklines_note(garments: list[Garment], ranges, x: np.ndarray,
+                        track: ColliderTrack | None, body_frame: int) -> str:
+    """'; the top's neckline had slid 0.34 m off the shoulders by then' for each garment of
+    slid_necklines (same arguments), else empty. A strap top that slid down the arms and is
+    caught at the elbow runs away there, and a rejection as unstable should say what came
+    first (docs/simulator.md, "Old overlaps separate at the recovery speed")."""
+    return "".join(f"; the {g.category}'s neckline had slid {b.value:.2f} m off the shoulders "
+                   "by then" for g, b in slid_necklines(garments, ranges, x, track, body_frame))
 
 
 def simulate(garments: list[Garment], body: BodySequence | ColliderTrack | None,
