@@ -331,27 +331,20 @@ def slid_off_in(garments: list[Garment], sim: SimResult,
     """slipped_necklines of a simulation `sim` of `garments` on `body` (a body sequence, or a
     track with its neck joint; none for other colliders)."""
     from datagen import qa
+    from datagen.sim.simulate import necklines_off
 
     if body is None:  # cloth on a bare collider: no neck joint
         return []
-    neck = body.joints[:, qa.NECK_JOINT] if isinstance(body, BodySequence) else body.neck
-    rest_neck = (body.rest.joints[qa.NECK_JOINT] if isinstance(body, BodySequence)
-                 else body.rest_neck)
-    if neck is None or rest_neck is None:
+    if isinstance(body, BodySequence):
+        neck, rest_neck = body.joints[:, qa.NECK_JOINT], body.rest.joints[qa.NECK_JOINT]
+    else:
+        neck, rest_neck = body.neck, body.rest_neck
+    if neck is None or rest_neck is None or not sim.vertices:
         return []
     lead_in = int(body.lead_in_frames)
-    found = []
-    for g in garments:
-        loop = g.loops.get("neck")
-        if loop is None or len(loop) == 0:
-            continue
-        loop = np.asarray(loop, dtype=np.int64)
-        frames = sim.vertices[g.name][:, loop]
-        breach = qa.neckline_breach(frames, g.vertices[loop],
-                                    neck[lead_in:lead_in + len(frames)], rest_neck, g.category)
-        if breach is not None:
-            found.append(breach)
-    return found
+    n_frames = len(next(iter(sim.vertices.values())))
+    return [b for _, b in necklines_off(garments, lambda k, g, loop: sim.vertices[g.name][:, loop],
+                                        neck[lead_in:lead_in + n_frames], rest_neck)]
 
 
 def flexion_overlap_note(body: BodySequence | None, frames: list[int]) -> str:

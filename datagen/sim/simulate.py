@@ -862,27 +862,38 @@ def _effect_costs(costs: dict[str, float]) -> dict[str, float]:
     return dict(costs)
 
 
-def slid_necklines(garments: list[Garment], ranges, x: np.ndarray,
-                   track: ColliderTrack | None, body_frame: int) -> list[tuple[Garment, Breach]]:
-    """Each garment whose neckline (qa.neckline_slip) is past qa.NECKLINE_SLIP_MAX in the
-    outfit's positions `x` (garment k at rows ranges[k]) at `body_frame` of `track`, with the
-    breach, its frame the output frame (body_frame less the track's lead-in). Empty for a
-    collider without a neck joint (a sphere, a batch's joined track)."""
+def necklines_off(garments: list[Garment], neckline_frames, neck: np.ndarray,
+                  rest_neck: np.ndarray) -> list[tuple[Garment, Breach]]:
+    """Each garment whose neckline (qa.neckline_slip) is past qa.NECKLINE_SLIP_MAX in some
+    frame, with its breach (qa.neckline_breach: its worst frame, counted from the first of
+    `neck`). `neckline_frames(k, g, loop)`: garment k's neckline vertices `loop` at the frames
+    whose neck joint `neck` (F, 3) gives, (F, L, 3); `rest_neck` (3,) the fit's."""
     from datagen import qa
 
-    if track is None or track.neck is None or track.rest_neck is None:
-        return []
     found = []
-    for g, (lo, _) in zip(garments, ranges, strict=True):
+    for k, g in enumerate(garments):
         loop = g.loops.get("neck")
         if loop is None or len(loop) == 0:
             continue
         loop = np.asarray(loop, dtype=np.int64)
-        breach = qa.neckline_breach(x[lo + loop][None], g.vertices[loop],
-                                    track.neck[body_frame][None], track.rest_neck, g.category)
+        breach = qa.neckline_breach(neckline_frames(k, g, loop), g.vertices[loop], neck,
+                                    rest_neck, g.category)
         if breach is not None:
-            found.append((g, replace(breach, frame=max(body_frame - track.lead_in_frames, 0))))
+            found.append((g, breach))
     return found
+
+
+def slid_necklines(garments: list[Garment], ranges, x: np.ndarray,
+                   track: ColliderTrack | None, body_frame: int) -> list[tuple[Garment, Breach]]:
+    """necklines_off in the outfit's positions `x` (garment k at rows ranges[k]) at
+    `body_frame` of `track`, each breach's frame the output frame (body_frame less the track's
+    lead-in). Empty for a collider without a neck joint (a sphere, a batch's joined track)."""
+    if track is None or track.neck is None or track.rest_neck is None:
+        return []
+    frame = max(body_frame - track.lead_in_frames, 0)
+    return [(g, replace(b, frame=frame)) for g, b in necklines_off(
+        garments, lambda k, g, loop: x[ranges[k][0] + loop][None],
+        track.neck[body_frame][None], track.rest_neck)]
 
 
 def slid_necklines_note(garments: list[Garment], ranges, x: np.ndarray,
