@@ -2115,6 +2115,51 @@ def test_profiled_frames_compute_what_the_fused_frame_kernel_computes_without_fr
     assert np.array_equal(runs[0], runs[1])
 
 
+
+def test_a_parallel_backends_substep_sweeps_in_one_launch_per_iteration(monkeypatch, request):
+    """On a parallel backend (a GPU: bound by launches, docs/benchmarks.md) the xpbd substep's
+    prediction, pins and multiplier resets are one launch and each iteration's sweeps (bending
+    and every spring set, colour after colour) another, where the per-effect kernels took one
+    per effect and set. Profiled frames still run the per-effect kernels, so the two must be one
+    computation: to the last bit without fast math (in_ieee_process), on the coloured path run
+    on this CPU (backend.serial overridden, as tests/parallel_sweeps.py does). Scenes: a leather
+    sheet pinned along one edge with every effect (pins and tethers, bends stiff enough to be
+    swept every iteration, self-collision), and the denim tube on its swinging cylinder
+    (contact, friction, the strain limit after contact)."""
+    if in_ieee_process(request):
+        return
+    from datagen.sim import backend
+    from datagen.study.scenes import build_scene
+
+    monkeypatch.setattr(backend, "serial", lambda: False)
+    sheet = grid_sheet(24, 1.0, 1.5, fabric="leather")
+    sheet.pinned = np.flatnonzero(np.isclose(sheet.vertices[:, 0], -0.5))
+    tube = build_scene("tube_cylinder", "denim", "coarse", frames=3)
+    for name, garments, track, effects in (("sheet", [sheet], None, "all"),
+                                           ("tube", tube.garments, tube.track, "auto")):
+        runs, reports = {}, {}
+        for profile_every in (0, 1):
+            result = simulate(garments, track, SimOptions(
+                frames=3, settle_seconds=0.0, effects=effects, strain_refinements=0,
+                profile_every=profile_every))
+            runs[profile_every] = np.concatenate([result.vertices[g.name] for g in garments],
+                                                 axis=1)
+            reports[profile_every] = result.report
+        assert np.abs(runs[0][-1] - runs[0][0]).max() > 0.01, name  # it moved
+        assert np.array_equal(runs[0], runs[1]), name
+        fused, profiled = reports[0], reports[1]
+        substeps = fused["substeps"] * 3
+        assert fused["substeps"] == 40 and fused["iterations"] == 8  # the parallel default
+        launches = fused["kernel_launches"]
+        assert launches["fused_sweeps"] == substeps * (1 + fused["iterations"]), name
+        for effect in ("gravity", "bending", "stretch", "shear"):
+            assert effect not in launches, (name, effect)
+            assert profiled["kernel_launches"][effect] >= substeps, (name, effect)
+        assert "fused_sweeps" not in profiled["kernel_launches"]
+        # Unprofiled, the sweeps' time is reported whole; profiled frames split it by effect.
+        assert fused["effect_costs_s"]["sweeps"] > 0
+        assert "sweeps" not in profiled["effect_costs_s"]
+
 def test_xpbd_sweeps_in_wavefront_order_give_the_model_orders_result_bit_for_bit(monkeypatch,
                                                                                  request):
     """The serial xpbd sweeps visit springs and bends in wavefront order: a denim tube on its

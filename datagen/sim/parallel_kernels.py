@@ -1,8 +1,10 @@
 """Kernels for parallel backends (a GPU, or several CPU threads) where the serial form is one
-task or sums in the order threads run: the xpbd solver's strain limit after contact (coloured
-sweeps), self-collision (self_collide_parallel), vertex normals of the inner garment and of the
-body collider (vertex_normals_gathered below), the outer garments' pushes (kernels.collide_layers
-summing in fixed point), and the explicit solver's forces (gathered per vertex).
+task or sums in the order threads run, or where a launch per effect costs more than the work:
+the xpbd solver's substep start and its iterations' sweeps (one launch each), its strain limit
+after contact (coloured sweeps), self-collision (self_collide_parallel), vertex normals of the
+inner garment and of the body collider (vertex_normals_gathered below), the outer garments'
+pushes (kernels.collide_layers summing in fixed point), and the explicit solver's forces
+(gathered per vertex).
 
 The serial form (kernels.limit_after_contact_active) appends to shared lists, so it runs as one
 task on one thread: on a GPU that is one GPU thread walking every limited spring, in every
@@ -25,19 +27,108 @@ from datagen.sim.kernels import (
     I4,
     V3,
     V4,
+    V8,
     bend_force,
+    bend_gs_one,
     collide_one,
     colour_range,
     hash_cell,
+    lerp3,
     limit_after_contact_one,
+    predict_one,
     self_cell,
     self_pair_target,
     sort_cells,
     spring_force,
+    spring_gs_one,
     vec3,
     vertex_normal_finish_one,
 )
 from datagen.sim.precision import REAL
+
+# -- the xpbd substep in few launches ------------------------------------------------------------
+# A parallel backend pays for each launch from Python whatever the work (a GPU: 6-12 us on the
+# device, more in Taichi's Python; docs/benchmarks.md), and the per-effect kernels took about 37
+# a substep at 40x8 (predict, pins, a fill per multiplier array, then per iteration the bending
+# and one launch per spring set). These two kernels do the same work, element for element and in
+# the same order, in 1 + iterations launches: profiled frames still run the per-effect kernels,
+# which measure each effect's cost.
+
+
+@ti.kernel
+def xpbd_substep_begin(
+    x: V3,
+    xp: V3,
+    v: V3,
+    w: F1,
+    drag: F1,
+    gravity: vec3,
+    wind: vec3,
+    h: REAL,
+    pin_idx: I1,
+    pin_t0: V3,
+    pin_t1: V3,
+    n_pins: ti.i32,
+    s1: REAL,
+    lam: F1,
+    lam_b: V3,
+    use_gravity: ti.template(),
+    use_air: ti.template(),
+):
+    """kernels.predict, then the pins at their targets (kernels.apply_pins), then the spring
+    and bending multipliers at zero."""
+    for i in x:
+        predict_one(i, x, xp, v, w, drag, gravity, wind, h, use_gravity, use_air)
+    for p in range(n_pins):
+        x[pin_idx[p]] = lerp3(pin_t0[p], pin_t1[p], s1)
+    for e in lam:
+        lam[e] = 0.0
+    for b in lam_b:
+        lam_b[b] = vec3(0.0)
+
+
+@ti.kernel
+def xpbd_iteration_coloured(
+    x: V3,
+    xp: V3,
+    w: F1,
+    springs: I2,
+    rest: F1,
+    limit: F1,
+    comp_t: F1,
+    comp_c: F1,
+    beta: F1,
+    lam: F1,
+    spring_order: I1,
+    spring_ranges: I2,
+    bends: I4,
+    kk: V8,
+    bstep: V4,
+    lam_b: V3,
+    bend_order: I1,
+    bend_ptr: I1,
+    h: REAL,
+    reverse: ti.i32,
+    omega: REAL,
+    omega_b: REAL,
+    n_bend_colours: ti.template(),
+    n_spring_colours: ti.template(),
+):
+    """One iteration's sweeps: kernels.bends_coloured (`bend_order` by colour, every bend or
+    the stiff ones, at `omega_b`), then every spring set's kernels.springs_coloured over the
+    fused springs (solvers.XPBDSolver._build_fused). `spring_ranges` holds each colour's slice
+    of `spring_order`, the sets one after another: first in forward order (n_spring_colours
+    rows), then in reverse order, where each set sweeps its colours backwards."""
+    inv_h = 1.0 / h
+    for c in ti.static(range(n_bend_colours)):
+        r = colour_range(c, n_bend_colours, reverse, bend_ptr)
+        for k in range(r[0], r[1]):
+            bend_gs_one(bend_order[k], x, xp, bends, kk, bstep, lam_b, omega_b)
+    for c in ti.static(range(n_spring_colours)):
+        r = spring_ranges[reverse * n_spring_colours + c]
+        for k in range(r[0], r[1]):
+            spring_gs_one(spring_order[k], x, xp, w, springs, rest, limit, comp_t, comp_c, beta,
+                          lam, inv_h, omega)
 
 
 @ti.kernel

@@ -850,9 +850,28 @@ class _Simulation:
         )
 
 
+# The per-effect kernels whose work a parallel backend's fused sweeps do (solvers.XPBDSolver.
+# _coloured_substep: prediction, pins, bending and every spring set).
+SWEEP_COSTS = ("gravity", "air_drag", "pins", "bending", "stretch", "shear", "elastic",
+               "seams", "stretch_loops")
+
+
 def _effect_costs(costs: dict[str, float]) -> dict[str, float]:
     """Seconds per effect. Frames run by the fused kernel are attributed in proportion to the
-    per-effect kernels of the profiled frames."""
+    per-effect kernels of the profiled frames, and a parallel backend's fused sweeps likewise
+    among the effects they run ("sweeps" where no frame was profiled)."""
+    costs = dict(costs)
+    sweeps = costs.pop("fused_sweeps", 0.0)
+    if sweeps > 0:
+        swept = {k: v for k, v in costs.items() if k in SWEEP_COSTS}
+        total = sum(swept.values())
+        # Every profiled frame predicts (gravity or air drag); tethers alone ("pins") run in
+        # every frame and say nothing of the split.
+        if total > 0 and ("gravity" in swept or "air_drag" in swept):
+            for k, v in swept.items():
+                costs[k] = v + sweeps * v / total
+        else:
+            costs["sweeps"] = sweeps
     fused = costs.pop("fused_frame", 0.0)
     total = sum(costs.values())
     if fused > 0 and total > 0:

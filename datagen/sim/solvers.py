@@ -605,8 +605,12 @@ class XPBDSolver(ClothSolver):
                 self.bend_colours = _Colouring(self.bends_np, self.n)
         self._build_fused()
         self._init_active_limit()
+        # Profiled frames run the per-effect kernels (advance_frame); the others, on a parallel
+        # backend, the substep's few launches (_coloured_substep).
+        self._profiling = False
         if not self.gauss_seidel:
             self._init_coloured_limit()
+            self._init_fused_colours()
 
     def _init_active_limit(self) -> None:
         """The arrays of kernels.limit_after_contact_active, over the fused springs (seams and
@@ -637,6 +641,26 @@ class XPBDSolver(ClothSolver):
         self.limit_colours = _Colouring(pairs, self.n, limited.astype(np.int32))
         self.limit_worst = _nd(REAL, np.zeros(1, NP_REAL))
         self.limit_moved = _nd(ti.i32, np.zeros(self.n, np.int32))
+
+    def _init_fused_colours(self) -> None:
+        """The fused springs (_build_fused) by colour for parallel_kernels.xpbd_iteration_coloured:
+        each set coloured as springs_coloured colours it, its indices shifted to the fused
+        arrays, and each colour's slice of that order, forward and then reversed within each
+        set (the sets keep their order: the per-effect sweeps' order either way)."""
+        orders, forward, reverse, lo = [], [], [], 0
+        for s in self.sets.values():
+            order, ptr = colour_order(self.model.springs[s.index], self.n)
+            orders.append(order + lo)
+            spans = [(lo + ptr[c], lo + ptr[c + 1]) for c in range(len(ptr) - 1)]
+            forward += spans
+            reverse += spans[::-1]
+            lo += s.count
+        self.n_spring_colours = len(forward)
+        order = np.concatenate(orders) if orders else np.zeros(0, np.int64)
+        self.fused_spring_order = _nd(ti.i32, order.astype(np.int32))
+        self.fused_spring_ranges = _nd(ti.math.ivec2, np.asarray(
+            forward + reverse if forward else [(0, 0)], np.int32).reshape(-1, 2))
+        self._no_bend_colours = _Colouring(np.zeros((0, 4), np.int32), self.n)
 
     def _search_and_collide(self, collider, s0: float, s1: float, h: float) -> None:
         """ClothSolver's; on the serial path computed as the fused frame kernel computes it
@@ -791,6 +815,7 @@ class XPBDSolver(ClothSolver):
     def advance_frame(self, collider, n_sub: int, h: float, profile: bool = False,
                       search: bool = True) -> None:
         if profile or not self.gauss_seidel:
+            self._profiling = profile
             return super().advance_frame(collider, n_sub, h, profile, search)
         self.begin_frame(collider, n_sub * h, search)
         self._use_step(h)
@@ -901,8 +926,42 @@ class XPBDSolver(ClothSolver):
         return self._dummy_collider
 
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
-        e = self.effects
         self._use_step(h)
+        if self.parallel and not self._profiling:
+            self._coloured_substep(h, s1)
+        else:
+            self._per_effect_sweeps(h, s1)
+        if self.n_tethers:  # after the sweeps, as in the fused kernel
+            self._run("pins", K.apply_tethers, self.x, self.tethers, self.tether_len)
+        self._contact_and_finish(collider, s0, s1, h, K.finish)
+
+    def _coloured_substep(self, h: float, s1: float) -> None:
+        """_per_effect_sweeps on a parallel backend in 1 + iterations launches
+        (parallel_kernels.xpbd_substep_begin and xpbd_iteration_coloured): the same elements in
+        the same order, so the same result to the last bit without fast math."""
+        e = self.effects
+        self._run("fused_sweeps", PK.xpbd_substep_begin, self.x, self.xp, self.v, self.w,
+                  self.drag, self.gravity, self.wind, h, self.pin_idx, self.pin_t0, self.pin_t1,
+                  self.n_pins, s1, self.f_lam, self.lam_b, e.gravity, e.air_drag or e.wind)
+        for it in range(self.settings.iterations):
+            reverse = self._sweep % 2
+            self._sweep += 1
+            sor = self._sweep_sor(reverse)
+            bends, omega_b = self._no_bend_colours, 1.0  # as _coloured_iteration chooses
+            if self.n_bends and it == 0:
+                bends, omega_b = self.bend_colours, sor
+            elif self.n_stiff_bends:
+                bends, omega_b = self.stiff_bend_colours, 1.0
+            self._run("fused_sweeps", PK.xpbd_iteration_coloured, self.x, self.xp, self.w,
+                      self.f_springs, self.f_rest, self.f_limit, self.f_comp_t, self.f_comp_c,
+                      self.f_beta, self.f_lam, self.fused_spring_order, self.fused_spring_ranges,
+                      *self._bend_args()[2:], bends.order, bends.ptr, h, reverse, sor, omega_b,
+                      bends.n_colours, self.n_spring_colours)
+
+    def _per_effect_sweeps(self, h: float, s1: float) -> None:
+        """The substep's prediction, pins and iterations, a kernel per effect (each effect's
+        cost timed)."""
+        e = self.effects
         self._run(
             "gravity" if e.gravity else "air_drag",
             K.predict,
@@ -954,9 +1013,6 @@ class XPBDSolver(ClothSolver):
                     )
             else:
                 self._coloured_iteration(h, it, reverse, sor)
-        if self.n_tethers:  # after the sweeps, as in the fused kernel
-            self._run("pins", K.apply_tethers, self.x, self.tethers, self.tether_len)
-        self._contact_and_finish(collider, s0, s1, h, K.finish)
 
     def _bending_sweep(self, h: float, it: int, reverse: int, sor: float) -> None:
         """Iteration it's bending on the serial per-effect path: every stencil in the first
