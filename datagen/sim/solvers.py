@@ -947,11 +947,8 @@ class XPBDSolver(ClothSolver):
             reverse = self._sweep % 2
             self._sweep += 1
             sor = self._sweep_sor(reverse)
-            bends, omega_b = self._no_bend_colours, 1.0  # as _coloured_iteration chooses
-            if self.n_bends and it == 0:
-                bends, omega_b = self.bend_colours, sor
-            elif self.n_stiff_bends:
-                bends, omega_b = self.stiff_bend_colours, 1.0
+            bends, omega_b = self._iteration_bends(it, sor)
+            bends = bends or self._no_bend_colours
             self._run("fused_sweeps", PK.xpbd_iteration_coloured, self.x, self.xp, self.w,
                       self.f_springs, self.f_rest, self.f_limit, self.f_comp_t, self.f_comp_c,
                       self.f_beta, self.f_lam, self.fused_spring_order, self.fused_spring_ranges,
@@ -1034,15 +1031,20 @@ class XPBDSolver(ClothSolver):
         """The over-relaxation of a sweep in this direction (SolverSettings.plain_reverse)."""
         return 1.0 if self.settings.plain_reverse and reverse else self.settings.sor
 
+    def _iteration_bends(self, it: int, sor: float) -> tuple[_Colouring | None, float]:
+        """The bends iteration `it` sweeps on a parallel backend and their over-relaxation:
+        every bend at `sor` first, then the stiff ones plain (see the fused kernel), or none."""
+        if self.n_bends and it == 0:
+            return self.bend_colours, sor
+        if self.n_stiff_bends:
+            return self.stiff_bend_colours, 1.0
+        return None, 1.0
+
     def _coloured_iteration(self, h: float, it: int, reverse: int, sor: float) -> None:
         """The Gauss-Seidel branch's sweeps of one iteration on a parallel backend: the same
         order of effects and the same over-relaxation (`sor`, this sweep's), each colour one
         parallel loop."""
-        bends = None
-        if self.n_bends and it == 0:
-            bends, omega = self.bend_colours, sor
-        elif self.n_stiff_bends:
-            bends, omega = self.stiff_bend_colours, 1.0  # not over-relaxed (see the fused kernel)
+        bends, omega = self._iteration_bends(it, sor)
         if bends is not None:
             self._run("bending", K.bends_coloured, *self._bend_args(), bends.order, bends.ptr,
                       reverse, omega, bends.n_colours)
