@@ -239,6 +239,27 @@ def _repeat_rows(scenes: Path | None) -> list[dict]:
     return rows
 
 
+def python_launches(run) -> int:
+    """How many Taichi kernels `run()` calls from Python (each call pays Taichi's argument
+    handling and a launch, whatever the work: what binds one scene on a GPU)."""
+    import taichi.lang.kernel_impl as kernel_impl
+
+    calls = 0
+    original = kernel_impl.Kernel.__call__
+
+    def counted(self, *args, **kwargs):
+        nonlocal calls
+        calls += 1
+        return original(self, *args, **kwargs)
+
+    kernel_impl.Kernel.__call__ = counted
+    try:
+        run()
+    finally:
+        kernel_impl.Kernel.__call__ = original
+    return calls
+
+
 def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
     """Run every case on one backend in this process (Taichi's backend is fixed per process).
     Modes: `cases` (CASES and the t-shirt); `profile`, the first case over PROFILE_FRAMES with
@@ -330,9 +351,13 @@ def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
         run = run_ours(scene, "xpbd", sub, it)
         ti.sync()
         kernels = ti.profiler.get_kernel_profiler_total_time()
+        # Counted in a run of its own (the count's wrapper would add to the timed one).
+        calls = python_launches(lambda: run_ours(scene, "xpbd", sub, it))
         out.write_text(json.dumps({"arch": backend_arch(), "scene": f"{name} {res} {fabric}",
                                    "frames": PROFILE_FRAMES, "substeps": sub,
-                                   "wall": run.wall, "kernel_time": kernels}))
+                                   "wall": run.wall, "kernel_time": kernels,
+                                   "python_launches_per_substep":
+                                       calls / (PROFILE_FRAMES * sub)}))
         ti.profiler.print_kernel_profiler_info("count")
         return
     rows, arrays = [], {}
@@ -682,6 +707,9 @@ def report(out_dir: Path) -> None:
             f"{eg:.2f} | {ec:.2f} | {h} | {g['strain_p999_max']:.3f} | "
             f"{c['strain_p999_max']:.3f} |")
     share = profile["kernel_time"] / profile["wall"]
+    # Counted since 2026-12-05 (runs before it: one per effect and sweep, 30-40).
+    per_substep = profile.get("python_launches_per_substep")
+    calls = "30-40" if per_substep is None else f"{per_substep:.1f}"
     bodies = [(label, r) for g, c in zip(rows["cuda"], rows["cpu"], strict=True)
               if g["key"].startswith("tshirt") for label, r in (("GPU", g), ("CPU", c))]
     if bodies:
@@ -696,8 +724,8 @@ def report(out_dir: Path) -> None:
         f"Where the GPU's time goes (Taichi's kernel profiler, {profile['scene']}, "
         f"{profile['frames']} frames): the device ran kernels for {profile['kernel_time']:.2f} "
         f"of {profile['wall']:.2f} s ({100 * share:.0f} %), 6-12 us a kernel whether it "
-        "moves a thousand springs or none; the rest is launching them: 30-40 calls from "
-        "Python a substep (one per effect and sweep, each a few kernels, one a colour). The "
+        f"moves a thousand springs or none; the rest is launching them: {calls} calls from "
+        "Python a substep (each a few kernels, one a colour). The "
         "strain limit after contact as one serial task (the CPU's form; the serial_limit run, "
         f"alone on the GPU{earlier('serial_limit')}) ran the same scene at "
         f"{limit['s_per_sim_s']:.2f} s/sim-s against "
