@@ -129,7 +129,10 @@ class _Colouring:
     def __init__(self, elements: np.ndarray, n_vertices: int, ids: np.ndarray | None = None):
         order, ptr = colour_order(elements, n_vertices)
         self.n_colours = len(ptr) - 1
-        self.order = _nd(ti.i32, order if ids is None else ids[order].astype(np.int32))
+        # Host copies too: the fused sweeps join the spring sets' colourings (XPBDSolver).
+        self.order_np = order if ids is None else ids[order].astype(np.int32)
+        self.ptr_np = ptr
+        self.order = _nd(ti.i32, self.order_np)
         self.ptr = _nd(ti.i32, ptr)
 
 
@@ -644,13 +647,13 @@ class XPBDSolver(ClothSolver):
 
     def _init_fused_colours(self) -> None:
         """The fused springs (_build_fused) by colour for parallel_kernels.xpbd_iteration_coloured:
-        each set coloured as springs_coloured colours it, its indices shifted to the fused
-        arrays, and each colour's slice of that order, forward and then reversed within each
-        set (the sets keep their order: the per-effect sweeps' order either way)."""
+        each set's colouring (spring_colours), its indices shifted to the fused arrays, and each
+        colour's slice of that order, forward and then reversed within each set (the sets keep
+        their order: the per-effect sweeps' order either way)."""
         orders, forward, reverse, lo = [], [], [], 0
-        for s in self.sets.values():
-            order, ptr = colour_order(self.model.springs[s.index], self.n)
-            orders.append(order + lo)
+        for name, s in self.sets.items():
+            ptr = self.spring_colours[name].ptr_np
+            orders.append(self.spring_colours[name].order_np + lo)
             spans = [(lo + ptr[c], lo + ptr[c + 1]) for c in range(len(ptr) - 1)]
             forward += spans
             reverse += spans[::-1]
