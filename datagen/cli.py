@@ -10,7 +10,19 @@ from pathlib import Path
 import click
 
 from datagen.cli_paths import preview_path, shard_path
-from datagen.errors import user_errors
+from datagen.errors import DatagenError, RejectedSequence, user_errors
+
+
+def body_rejection_hint(pipeline: bool) -> str:
+    """What the user of a one-scene command can do when the body stage rejects the subject:
+    only self-intersections beyond the body bounds reject there (body.sequence), so another
+    subject may perform the same motion."""
+    if pipeline:
+        return ("the subject that --index draws cannot perform this motion within the body "
+                "bounds of the recipe's `body` section (docs/recipes.md); another --index "
+                "draws another subject")
+    return ("the subject that --seed draws cannot perform this motion within the body stage's "
+            "bounds (docs/recipes.md, `body`); another --seed draws another subject")
 
 
 class FrameBar:
@@ -262,7 +274,10 @@ def body(
             spec, subject=replace(spec.subject, model="smpl", shape={n: 0.0 for n in names})
         )
     motion = motion_from_spec(spec.motion, base_dir)
-    seq = build_body_sequence(spec.subject, motion, spec.motion.lead_in, model, config)
+    try:
+        seq = build_body_sequence(spec.subject, motion, spec.motion.lead_in, model, config)
+    except RejectedSequence as exc:
+        raise DatagenError(f"{exc}; {body_rejection_hint(bool(pipeline))}") from exc
     with ShardWriter(out) as writer:
         group = writer.sequence_group(spec)
         writer.add_body(group, seq, store_vertices=store_vertices)
@@ -381,9 +396,9 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, fp
     finally:
         bar.close()
     if record.status != "ok":
-        from datagen.errors import DatagenError
-
-        raise DatagenError(f"scene rejected at {record.stage}: {record.reason}")
+        where = f" (frames {record.frames[0]}-{record.frames[1]})" if record.frames else ""
+        hint = f"; {body_rejection_hint(False)}" if record.stage == "body" else ""
+        raise DatagenError(f"scene rejected at {record.stage}: {record.reason}{where}{hint}")
     with ShardWriter(out) as writer:
         write_record(writer, record)
     sim = record.sim
