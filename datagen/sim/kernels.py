@@ -206,14 +206,6 @@ def finish(x: V3, xp: V3, v: V3, w: F1, contact_n: V3, contact_v: V3, h: REAL):
 
 # -- XPBD constraints --------------------------------------------------------------------------
 @ti.kernel
-def clear_lambda(lam: F1, lam_b: V3):
-    for e in lam:
-        lam[e] = 0.0
-    for b in lam_b:
-        lam_b[b] = vec3(0.0)
-
-
-@ti.kernel
 def clear_vec3(a: V3):
     for i in a:
         a[i] = vec3(0.0)
