@@ -986,7 +986,8 @@ def test_the_one_launch_serial_grid_is_the_three_kernel_grid(hashed, monkeypatch
 def test_the_depth_search_finds_the_nearest_triangle_whatever_its_hint(hashed, monkeypatch):
     """The depth QA's signed distance is each point's distance to the nearest filed triangle
     of the body at the frame's end, signed by the surface normal, or one cell where none is
-    within it. The solver's tracked triangle and the last call's closest one only start the
+    within it, negative inside the body (test_the_depth_qa_sees_cloth_deeper_than_a_cell_inside).
+    The solver's tracked triangle and the last call's closest one only start the
     search and narrow the cells it scans: a neighbour of the nearest, any other, an unfiled one
     or one out of range must give the same distances as none."""
     import taichi as ti
@@ -1031,7 +1032,11 @@ def test_the_depth_search_finds_the_nearest_triangle_whatever_its_hint(hashed, m
         near = distance < cell - 1e-6
         assert 0.3 < near.mean() < 0.9
         np.testing.assert_allclose(measured[near], truth[near], atol=2e-6)
-        np.testing.assert_array_equal(measured[distance > cell + 1e-6], np.float32(cell))
+        beyond = distance > cell + 1e-6
+        inside = trimesh.Trimesh(end, faces, process=False).contains(points)
+        assert (beyond & inside).sum() > 100 and (beyond & ~inside).sum() > 100
+        np.testing.assert_array_equal(measured[beyond & ~inside], np.float32(cell))
+        np.testing.assert_array_equal(measured[beyond & inside], np.float32(-cell))
         return near, which
 
     near, which = check_against_trimesh(v1, plain)
@@ -1071,6 +1076,54 @@ def test_the_depth_search_finds_the_nearest_triangle_whatever_its_hint(hashed, m
     check_against_trimesh(v2, collider.signed_distance(points))
     collider.set_frames(v2, v2)
     check_against_trimesh(v2, collider.signed_distance(points, hint=hint))
+
+
+def test_the_depth_qa_sees_cloth_deeper_than_a_cell_inside():
+    """Cloth more than a cell (25 mm) inside the body has no body triangle within the search's
+    reach, like cloth a cell away outside it. The QA tells them apart by the winding number of
+    the whole body mesh (Anny's is closed): negative is inside, where the body's own skinning
+    overlaps too (winding two), whatever the direction its triangles face; a collider that is
+    not closed has no inside, and such points read outside as before. Judged against trimesh's
+    ray tests."""
+    import trimesh
+
+    from datagen.sim.collider import BodyCollider, closed_surface
+
+    a = trimesh.creation.icosphere(subdivisions=3, radius=0.12)
+    b = a.copy()
+    b.apply_translation([0.0, 0.0, 0.15])  # overlapping by 9 cm, as a limb sunk into the torso
+    both = trimesh.util.concatenate([a, b])
+    verts, faces = np.asarray(both.vertices), np.asarray(both.faces)
+    assert closed_surface(faces) and closed_surface(faces[:, ::-1])
+    assert not closed_surface(faces[1:])
+    rng = np.random.default_rng(3)
+    points = rng.uniform([-0.15, -0.15, -0.15], [0.15, 0.15, 0.3], size=(6000, 3))
+    # Exactly on a vertex and an edge along the ray (a ray through shared corners or edges
+    # crosses the surface once): the centres' columns.
+    points[:2] = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.075]]
+    inside_a = a.contains(points)
+    inside_b = b.contains(points)
+    inside = inside_a | inside_b
+    assert (inside_a & inside_b).sum() > 100  # points where the winding number is two
+
+    for tri in (faces, faces[:, ::-1]):
+        mask = np.ones(len(tri), bool)
+        mask[: len(tri) // 2] = False  # the first sphere is not filed: all of it is "far"
+        collider = BodyCollider(tri, mask, len(verts))
+        assert collider.closed
+        collider.set_frames(verts, verts)
+        sd = collider.signed_distance(points)
+        far = np.abs(sd) == np.float32(collider.cell)
+        assert far[:2].all() and far.sum() > 3000
+        np.testing.assert_array_equal(sd[far] < 0, inside[far])
+        assert (sd[far & inside_a & ~inside_b] < 0).all()
+
+    open_collider = BodyCollider(faces[1:], np.ones(len(faces) - 1, bool), len(verts))
+    assert not open_collider.closed
+    open_collider.set_frames(verts, verts)
+    sd = open_collider.signed_distance(points)
+    far = np.abs(sd) == np.float32(open_collider.cell)
+    assert (sd[far & inside] > 0).all()
 
 
 def test_colouring_gives_each_colour_vertex_disjoint_elements():

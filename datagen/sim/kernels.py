@@ -2202,14 +2202,151 @@ def hint_bound(p: vec3, t: ti.i32, b: V3, faces: I3, mask: I1, best: REAL, best_
     return best, best_t
 
 
+# -- inside or outside, beyond a cell of the surface ---------------------------------------------
+# The depth QA's search finds no filed triangle within a cell for a point more than a cell deep
+# inside the body as for one a cell away outside it. A closed collider (the whole body mesh, which
+# is watertight) answers which by counting the crossings of a ray from the point along RAY_AXIS
+# with its triangles, filed in columns across the ray (column_grid_build): +1 where the ray leaves
+# the surface, -1 where it enters, so the sum is the point's winding number (two where the body's
+# own skinning overlaps, still inside). The ray runs along y, a standing body's front-to-back
+# axis, its thinnest: the columns then hold the fewest triangles.
+RAY_AXIS = 1
+_RI = (RAY_AXIS + 1) % 3  # the columns' two coordinates, cyclic after the ray's (so that a
+_RJ = (RAY_AXIS + 2) % 3  # triangle's projected area has the sign of its normal along the ray)
+
+
+@ti.func
+def column_of(p: vec3, origin: vec3, inv_cell: REAL, dims: ti.math.ivec3) -> ti.i32:
+    """The column (of column_grid_build's) holding point p, or -1 outside the grid."""
+    ci = ti.cast(ti.floor((p[_RI] - origin[_RI]) * inv_cell), ti.i32)
+    cj = ti.cast(ti.floor((p[_RJ] - origin[_RJ]) * inv_cell), ti.i32)
+    c = -1
+    if 0 <= ci < dims[0] and 0 <= cj < dims[1]:
+        c = ci * dims[1] + cj
+    return c
+
+
+@ti.func
+def triangle_columns(b: V3, f: ti.math.ivec3, origin: vec3, inv_cell: REAL,
+                     dims: ti.math.ivec3) -> ti.math.ivec4:
+    """The columns a triangle's projected box overlaps: (first, last) of each coordinate."""
+    lo = ti.min(b[f[0]], b[f[1]], b[f[2]])
+    hi = ti.max(b[f[0]], b[f[1]], b[f[2]])
+    return ti.math.ivec4(
+        ti.max(ti.cast(ti.floor((lo[_RI] - origin[_RI]) * inv_cell), ti.i32), 0),
+        ti.min(ti.cast(ti.floor((hi[_RI] - origin[_RI]) * inv_cell), ti.i32), dims[0] - 1),
+        ti.max(ti.cast(ti.floor((lo[_RJ] - origin[_RJ]) * inv_cell), ti.i32), 0),
+        ti.min(ti.cast(ti.floor((hi[_RJ] - origin[_RJ]) * inv_cell), ti.i32), dims[1] - 1))
+
+
+@ti.kernel
+def column_grid_build(b: V3, faces: I3, origin: vec3, inv_cell: REAL, dims: ti.math.ivec3,
+                      counts: I1, starts: I1, spans: I4, items: I1,
+                      serialize: ti.template()) -> ti.i32:
+    """File every triangle of the collider at `b` in each column (a square of the plane across
+    RAY_AXIS, `dims[0]` x `dims[1]` of them from `origin`) its projected box overlaps (`spans`:
+    scratch, a triangle's columns between the count and the fill). Returns
+    the number of entries; where `items` is too short for them nothing is filed (the caller
+    grows it and calls again). The order of a column's list does not matter: its crossings are
+    summed as integers."""
+    n_cols = dims[0] * dims[1]
+    ti.loop_config(serialize=serialize)
+    for c in range(n_cols):
+        counts[c] = 0
+    ti.loop_config(serialize=serialize)
+    for t in range(faces.shape[0]):
+        span = triangle_columns(b, faces[t], origin, inv_cell, dims)
+        spans[t] = span
+        for i in range(span[0], span[1] + 1):
+            for j in range(span[2], span[3] + 1):
+                ti.atomic_add(counts[i * dims[1] + j], 1)
+    run = 0
+    ti.loop_config(serialize=True)
+    for c in range(n_cols):
+        starts[c] = run
+        run += counts[c]
+    starts[n_cols] = run
+    ti.loop_config(serialize=serialize)
+    for c in range(n_cols):
+        counts[c] = 0  # the fill's cursors
+    if run <= items.shape[0]:
+        ti.loop_config(serialize=serialize)
+        for t in range(faces.shape[0]):
+            span = spans[t]
+            for i in range(span[0], span[1] + 1):
+                for j in range(span[2], span[3] + 1):
+                    c = i * dims[1] + j
+                    items[starts[c] + ti.atomic_add(counts[c], 1)] = t
+    return run
+
+
+@ti.func
+def edge_side(u: vec3, v: vec3, p: vec3, iu: ti.i32, iv: ti.i32) -> REAL:
+    """Which side of the projected edge u -> v (body vertices iu, iv) point p lies on (the
+    plane across RAY_AXIS; positive to the left), never zero. Evaluated from the lower-numbered
+    end, so that the two triangles sharing an edge, which run it in opposite directions, get
+    exactly opposite values; a point on the edge is given to one of them, as if moved by an
+    infinitesimal step along the column's first coordinate, or its second where the edge runs
+    along the first (a ray through an edge or a vertex then crosses the surface once)."""
+    sign = 1.0
+    a = u
+    e = v
+    if iv < iu:
+        sign = -1.0
+        a = v
+        e = u
+    s = (e[_RI] - a[_RI]) * (p[_RJ] - a[_RJ]) - (e[_RJ] - a[_RJ]) * (p[_RI] - a[_RI])
+    if s == 0.0:
+        s = -(e[_RJ] - a[_RJ])
+        if s == 0.0:
+            s = e[_RI] - a[_RI]
+    return sign * s
+
+
+@ti.func
+def winding_along_ray(p: vec3, b: V3, faces: I3, starts: I1, items: I1, origin: vec3,
+                      inv_cell: REAL, dims: ti.math.ivec3) -> ti.i32:
+    """The winding number of the collider at `b` (closed, outward) around point p: its signed
+    crossings with the ray from p along +RAY_AXIS, through the triangles of p's column."""
+    w = 0
+    c = column_of(p, origin, inv_cell, dims)
+    if c >= 0:
+        for q in range(starts[c], starts[c + 1]):
+            t = items[q]
+            f = faces[t]
+            ta = b[f[0]]
+            tb = b[f[1]]
+            tc = b[f[2]]
+            # Most of a column's triangles miss the ray: their box does (a point on the box's
+            # edge goes on to the exact test).
+            lo = ti.min(ta, tb, tc)
+            hi = ti.max(ta, tb, tc)
+            if (hi[RAY_AXIS] > p[RAY_AXIS] and lo[_RI] <= p[_RI] <= hi[_RI]
+                    and lo[_RJ] <= p[_RJ] <= hi[_RJ]):
+                s0 = edge_side(tb, tc, p, f[1], f[2])
+                s1 = edge_side(tc, ta, p, f[2], f[0])
+                s2 = edge_side(ta, tb, p, f[0], f[1])
+                # Inside the projected triangle: on the same side of its three edges.
+                if (s0 > 0 and s1 > 0 and s2 > 0) or (s0 < 0 and s1 < 0 and s2 < 0):
+                    area = s0 + s1 + s2
+                    along = (s0 * ta[RAY_AXIS] + s1 * tb[RAY_AXIS] + s2 * tc[RAY_AXIS]) / area
+                    if along > p[RAY_AXIS]:
+                        w += 1 if area > 0 else -1
+    return w
+
+
 @ti.kernel
 def grid_signed_distance(x: V3, hint: I1, last: I1, b: V3, n: V3, faces: I3, mask: I1,
                          origin: vec3, inv_cell: REAL, dims: ti.math.ivec3, shift: vec3,
                          starts: I1, items: I1, tbox: V8, far: REAL, out: F1,
+                         closed: ti.template(), col_starts: I1, col_items: I1, col_origin: vec3,
+                         col_inv_cell: REAL, col_dims: ti.math.ivec3, outward: ti.i32,
                          serialize: ti.template()):
     """Signed distance of each point to its closest collider triangle at the end of the frame
-    (`b`, vertex normals `n` for the sign), searching the 27 grid cells around it; `far` where no
-    triangle is within `far` (one cell). The grid (`starts`, `items`, `tbox`) must file each
+    (`b`, vertex normals `n` for the sign), searching the 27 grid cells around it. Where no
+    triangle is within `far` (one cell): `far`, or `-far` inside a `closed` collider (the
+    winding number of its whole mesh, `outward` 1 or -1 as its triangles face, through the
+    column grid `col_*` of column_grid_build). The grid (`starts`, `items`, `tbox`) must file each
     triangle in the cells of its box at `b`, in the grid's coordinates (b - shift: the frame's
     end in coordinates that move with the body's mean motion, count_triangle): BodyCollider
     passes its grid of the end boxes, which fills about half the cells that the solver's boxes
@@ -2263,7 +2400,14 @@ def grid_signed_distance(x: V3, hint: I1, last: I1, b: V3, n: V3, faces: I3, mas
                                 bound = reach * reach
         last[i] = best_t
         d = far
-        if best_t >= 0:
+        if best_t < 0:
+            # Nothing filed within a cell: a cell or more from the surface, on the side the
+            # ray's crossings give (a collider that is not closed has no inside to count).
+            if ti.static(closed):
+                if outward * winding_along_ray(p, b, faces, col_starts, col_items, col_origin,
+                                               col_inv_cell, col_dims) > 0:
+                    d = -far
+        else:
             f = faces[best_t]
             r = closest_on_triangle(p, b[f[0]], b[f[1]], b[f[2]])
             q = r[0] * b[f[0]] + r[1] * b[f[1]] + r[2] * b[f[2]]
