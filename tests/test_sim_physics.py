@@ -1085,6 +1085,7 @@ def test_the_depth_qa_sees_cloth_deeper_than_a_cell_inside():
     overlaps too (winding two), whatever the direction its triangles face; a collider that is
     not closed has no inside, and such points read outside as before. Judged against trimesh's
     ray tests."""
+    import taichi as ti
     import trimesh
 
     from datagen.sim.collider import BodyCollider, closed_surface
@@ -1117,6 +1118,26 @@ def test_the_depth_qa_sees_cloth_deeper_than_a_cell_inside():
         assert far[:2].all() and far.sum() > 3000
         np.testing.assert_array_equal(sd[far] < 0, inside[far])
         assert (sd[far & inside_a & ~inside_b] < 0).all()
+
+    # Parallel backends build the columns in three launches (count, prefix sum, fill by atomic
+    # cursors): the same triangles in each column, in whatever order.
+    from datagen.sim import kernels as K
+
+    grid, origin, inv_column, dims = collider._column_grid()
+    n_cols = int(dims[0] * dims[1])
+    serial_starts = grid.starts.to_numpy()[: n_cols + 1]
+    serial_items = grid.items.to_numpy()[: serial_starts[-1]]
+    starts = ti.ndarray(ti.i32, n_cols + 1)
+    items = ti.ndarray(ti.i32, len(serial_items))
+    blocks = ti.ndarray(ti.i32, n_cols // K.PREFIX_BLOCK + 2)
+    K.column_count(collider.b1, collider.faces, origin, inv_column, dims, grid.counts, grid.tbox)
+    K.grid_prefix(grid.counts, starts, n_cols, blocks)
+    K.column_fill(grid.tbox, dims, grid.counts, starts, items)
+    np.testing.assert_array_equal(starts.to_numpy(), serial_starts)
+    parallel_items = items.to_numpy()
+    for c in np.flatnonzero(np.diff(serial_starts)):
+        lo, hi = serial_starts[c], serial_starts[c + 1]
+        np.testing.assert_array_equal(np.sort(parallel_items[lo:hi]), np.sort(serial_items[lo:hi]))
 
     open_collider = BodyCollider(faces[1:], np.ones(len(faces) - 1, bool), len(verts))
     assert not open_collider.closed

@@ -391,13 +391,26 @@ class BodyCollider:
         dims = ti.math.ivec3(int(n[0]), int(n[1]), 0)
         if grid.tbox is None:
             grid.tbox = ti.ndarray(ti.math.ivec4, len(self.faces_np))  # the build's spans
-        args = (self.b1, self.faces, origin, float(1.0 / column), dims, grid.counts,
-                grid.starts, grid.tbox)
-        total = K.column_grid_build(*args, grid.items, backend.serial())
-        if total > grid.items_alloc:
-            grid.items_alloc = int(total * 1.5) + 16
-            grid.items = ti.ndarray(ti.i32, grid.items_alloc)
-            K.column_grid_build(*args, grid.items, backend.serial())
+        if backend.serial():
+            args = (self.b1, self.faces, origin, float(1.0 / column), dims, grid.counts,
+                    grid.starts, grid.tbox)
+            total = K.column_grid_build(*args, grid.items)
+            if total > grid.items_alloc:
+                grid.items_alloc = int(total * 1.5) + 16
+                grid.items = ti.ndarray(ti.i32, grid.items_alloc)
+                K.column_grid_build(*args, grid.items)
+        else:  # as _fill's parallel grid: count, prefix sum, fill
+            if grid.block_starts is None or (
+                    grid.block_starts.shape[0] < grid.n_cells_alloc // K.PREFIX_BLOCK + 2):
+                grid.block_starts = ti.ndarray(ti.i32, grid.n_cells_alloc // K.PREFIX_BLOCK + 2)
+            K.column_count(self.b1, self.faces, origin, float(1.0 / column), dims, grid.counts,
+                           grid.tbox)
+            K.grid_prefix(grid.counts, grid.starts, n_cols, grid.block_starts)
+            total = int(grid.starts[n_cols])
+            if total > grid.items_alloc:
+                grid.items_alloc = int(total * 1.5) + 16
+                grid.items = ti.ndarray(ti.i32, grid.items_alloc)
+            K.column_fill(grid.tbox, dims, grid.counts, grid.starts, grid.items)
         self._columns_at = (self.grid_tag, origin, float(1.0 / column), dims)
         return grid, origin, float(1.0 / column), dims
 

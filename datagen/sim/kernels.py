@@ -2239,19 +2239,13 @@ def triangle_columns(b: V3, f: ti.math.ivec3, origin: vec3, inv_cell: REAL,
         ti.min(ti.cast(ti.floor((hi[_RJ] - origin[_RJ]) * inv_cell), ti.i32), dims[1] - 1))
 
 
-@ti.kernel
-def column_grid_build(b: V3, faces: I3, origin: vec3, inv_cell: REAL, dims: ti.math.ivec3,
-                      counts: I1, starts: I1, spans: I4, items: I1,
-                      serialize: ti.template()) -> ti.i32:
-    """File every triangle of the collider at `b` in each column (a square of the plane across
-    RAY_AXIS, `dims[0]` x `dims[1]` of them from `origin`) its projected box overlaps (`spans`:
-    scratch, a triangle's columns between the count and the fill). Returns
-    the number of entries; where `items` is too short for them nothing is filed (the caller
-    grows it and calls again). The order of a column's list does not matter: its crossings are
-    summed as integers."""
-    n_cols = dims[0] * dims[1]
+@ti.func
+def count_columns(b: V3, faces: I3, origin: vec3, inv_cell: REAL, dims: ti.math.ivec3,
+                  counts: I1, spans: I4, serialize: ti.template()):
+    """Each column's number of triangles (column_grid_build), from zero, and each triangle's
+    columns in `spans`."""
     ti.loop_config(serialize=serialize)
-    for c in range(n_cols):
+    for c in range(dims[0] * dims[1]):
         counts[c] = 0
     ti.loop_config(serialize=serialize)
     for t in range(faces.shape[0]):
@@ -2260,24 +2254,54 @@ def column_grid_build(b: V3, faces: I3, origin: vec3, inv_cell: REAL, dims: ti.m
         for i in range(span[0], span[1] + 1):
             for j in range(span[2], span[3] + 1):
                 ti.atomic_add(counts[i * dims[1] + j], 1)
+
+
+@ti.func
+def fill_columns(spans: I4, dims: ti.math.ivec3, counts: I1, starts: I1, items: I1,
+                 serialize: ti.template()):
+    """File each triangle in its columns from their starts, `counts` zero on entry (cursors).
+    The order of a column's list does not matter: its crossings are summed as integers."""
+    ti.loop_config(serialize=serialize)
+    for t in range(spans.shape[0]):
+        span = spans[t]
+        for i in range(span[0], span[1] + 1):
+            for j in range(span[2], span[3] + 1):
+                c = i * dims[1] + j
+                items[starts[c] + ti.atomic_add(counts[c], 1)] = t
+
+
+@ti.kernel
+def column_grid_build(b: V3, faces: I3, origin: vec3, inv_cell: REAL, dims: ti.math.ivec3,
+                      counts: I1, starts: I1, spans: I4, items: I1) -> ti.i32:
+    """File every triangle of the collider at `b` in each column (a square of the plane across
+    RAY_AXIS, `dims[0]` x `dims[1]` of them from `origin`) its projected box overlaps, in one
+    launch, for serial backends (`spans`: scratch, a triangle's columns between the count and
+    the fill). Returns the number of entries; where `items` is too short for them nothing is
+    filed (the caller grows it and calls again). Parallel backends count (column_count), sum
+    (grid_prefix) and fill (column_fill) in three launches."""
+    count_columns(b, faces, origin, inv_cell, dims, counts, spans, True)
+    n_cols = dims[0] * dims[1]
     run = 0
     ti.loop_config(serialize=True)
     for c in range(n_cols):
         starts[c] = run
         run += counts[c]
-    starts[n_cols] = run
-    ti.loop_config(serialize=serialize)
-    for c in range(n_cols):
         counts[c] = 0  # the fill's cursors
+    starts[n_cols] = run
     if run <= items.shape[0]:
-        ti.loop_config(serialize=serialize)
-        for t in range(faces.shape[0]):
-            span = spans[t]
-            for i in range(span[0], span[1] + 1):
-                for j in range(span[2], span[3] + 1):
-                    c = i * dims[1] + j
-                    items[starts[c] + ti.atomic_add(counts[c], 1)] = t
+        fill_columns(spans, dims, counts, starts, items, True)
     return run
+
+
+@ti.kernel
+def column_count(b: V3, faces: I3, origin: vec3, inv_cell: REAL, dims: ti.math.ivec3,
+                 counts: I1, spans: I4):
+    count_columns(b, faces, origin, inv_cell, dims, counts, spans, False)
+
+
+@ti.kernel
+def column_fill(spans: I4, dims: ti.math.ivec3, counts: I1, starts: I1, items: I1):
+    fill_columns(spans, dims, counts, starts, items, False)
 
 
 @ti.func
