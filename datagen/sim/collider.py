@@ -367,6 +367,14 @@ class BodyCollider:
             a, b, c = (end[self.faces_np[:, k]] for k in range(3))
             volume = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
             self._outward = 1 if volume > 0 else -1
+        origin, inv_column, dims = self._column_extent()
+        self._build_columns(origin, inv_column, dims)
+        self._columns_at = (self.grid_tag, origin, inv_column, dims)
+        return self._columns, origin, inv_column, dims
+
+    def _column_extent(self) -> tuple[VEC3, float, ti.math.ivec3]:
+        """The column grid's corner, inverse column edge and columns along each of its two
+        axes, over the body at the frame's end."""
         axes = [(K.RAY_AXIS + 1) % 3, (K.RAY_AXIS + 2) % 3]
         # Reduced as rows (set_frames says why).
         rows = np.ascontiguousarray(np.asarray(self.v1_np).T, dtype=np.float64)
@@ -378,8 +386,14 @@ class BodyCollider:
         while np.prod(np.ceil((hi - lo)[axes] / column)) > DENSE_GRID_CELLS:
             column *= 2.0
         n = np.maximum(np.ceil((hi - lo)[axes] / column).astype(np.int64), 1)
+        return VEC3(*lo.astype(NP_REAL)), float(1.0 / column), ti.math.ivec3(int(n[0]),
+                                                                              int(n[1]), 0)
+
+    def _build_columns(self, origin: VEC3, inv_column: float, dims: ti.math.ivec3) -> None:
+        """File the whole mesh at the frame's end in the columns, growing the arrays where
+        they are short."""
         grid = self._columns
-        n_cols = int(n[0] * n[1])
+        n_cols = int(dims[0] * dims[1])
         if n_cols + 1 > grid.n_cells_alloc:
             grid.n_cells_alloc = int((n_cols + 1) * 1.5)
             grid.counts = ti.ndarray(ti.i32, grid.n_cells_alloc)
@@ -387,13 +401,11 @@ class BodyCollider:
         if grid.items_alloc == 0:
             grid.items_alloc = 4 * len(self.faces_np) + 16
             grid.items = ti.ndarray(ti.i32, grid.items_alloc)
-        origin = VEC3(*lo.astype(NP_REAL))
-        dims = ti.math.ivec3(int(n[0]), int(n[1]), 0)
         if grid.tbox is None:
             grid.tbox = ti.ndarray(ti.math.ivec4, len(self.faces_np))  # the build's spans
         if backend.serial():
-            args = (self.b1, self.faces, origin, float(1.0 / column), dims, grid.counts,
-                    grid.starts, grid.tbox)
+            args = (self.b1, self.faces, origin, inv_column, dims, grid.counts, grid.starts,
+                    grid.tbox)
             total = K.column_grid_build(*args, grid.items)
             if total > grid.items_alloc:
                 grid.items_alloc = int(total * 1.5) + 16
@@ -403,16 +415,13 @@ class BodyCollider:
             if grid.block_starts is None or (
                     grid.block_starts.shape[0] < grid.n_cells_alloc // K.PREFIX_BLOCK + 2):
                 grid.block_starts = ti.ndarray(ti.i32, grid.n_cells_alloc // K.PREFIX_BLOCK + 2)
-            K.column_count(self.b1, self.faces, origin, float(1.0 / column), dims, grid.counts,
-                           grid.tbox)
+            K.column_count(self.b1, self.faces, origin, inv_column, dims, grid.counts, grid.tbox)
             K.grid_prefix(grid.counts, grid.starts, n_cols, grid.block_starts)
             total = int(grid.starts[n_cols])
             if total > grid.items_alloc:
                 grid.items_alloc = int(total * 1.5) + 16
                 grid.items = ti.ndarray(ti.i32, grid.items_alloc)
             K.column_fill(grid.tbox, dims, grid.counts, grid.starts, grid.items)
-        self._columns_at = (self.grid_tag, origin, float(1.0 / column), dims)
-        return grid, origin, float(1.0 / column), dims
 
     def nearest(self, x, w, tri, s: float, which: int = K.SEARCH_ALL, guard=None,
                 odo: float = 0.0) -> None:
