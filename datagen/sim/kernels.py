@@ -2216,13 +2216,19 @@ _RJ = (RAY_AXIS + 2) % 3  # triangle's projected area has the sign of its normal
 
 
 @ti.func
+def column_index(p: vec3, origin: vec3, inv_cell: REAL) -> ti.math.ivec2:
+    """The column coordinates of point p (column_grid_build's), unbounded."""
+    return ti.math.ivec2(ti.cast(ti.floor((p[_RI] - origin[_RI]) * inv_cell), ti.i32),
+                         ti.cast(ti.floor((p[_RJ] - origin[_RJ]) * inv_cell), ti.i32))
+
+
+@ti.func
 def column_of(p: vec3, origin: vec3, inv_cell: REAL, dims: ti.math.ivec3) -> ti.i32:
-    """The column (of column_grid_build's) holding point p, or -1 outside the grid."""
-    ci = ti.cast(ti.floor((p[_RI] - origin[_RI]) * inv_cell), ti.i32)
-    cj = ti.cast(ti.floor((p[_RJ] - origin[_RJ]) * inv_cell), ti.i32)
+    """The column holding point p, or -1 outside the grid."""
+    ij = column_index(p, origin, inv_cell)
     c = -1
-    if 0 <= ci < dims[0] and 0 <= cj < dims[1]:
-        c = ci * dims[1] + cj
+    if 0 <= ij[0] < dims[0] and 0 <= ij[1] < dims[1]:
+        c = ij[0] * dims[1] + ij[1]
     return c
 
 
@@ -2230,13 +2236,10 @@ def column_of(p: vec3, origin: vec3, inv_cell: REAL, dims: ti.math.ivec3) -> ti.
 def triangle_columns(b: V3, f: ti.math.ivec3, origin: vec3, inv_cell: REAL,
                      dims: ti.math.ivec3) -> ti.math.ivec4:
     """The columns a triangle's projected box overlaps: (first, last) of each coordinate."""
-    lo = ti.min(b[f[0]], b[f[1]], b[f[2]])
-    hi = ti.max(b[f[0]], b[f[1]], b[f[2]])
-    return ti.math.ivec4(
-        ti.max(ti.cast(ti.floor((lo[_RI] - origin[_RI]) * inv_cell), ti.i32), 0),
-        ti.min(ti.cast(ti.floor((hi[_RI] - origin[_RI]) * inv_cell), ti.i32), dims[0] - 1),
-        ti.max(ti.cast(ti.floor((lo[_RJ] - origin[_RJ]) * inv_cell), ti.i32), 0),
-        ti.min(ti.cast(ti.floor((hi[_RJ] - origin[_RJ]) * inv_cell), ti.i32), dims[1] - 1))
+    lo = column_index(ti.min(b[f[0]], b[f[1]], b[f[2]]), origin, inv_cell)
+    hi = column_index(ti.max(b[f[0]], b[f[1]], b[f[2]]), origin, inv_cell)
+    return ti.math.ivec4(ti.max(lo[0], 0), ti.min(hi[0], dims[0] - 1),
+                         ti.max(lo[1], 0), ti.min(hi[1], dims[1] - 1))
 
 
 @ti.func
