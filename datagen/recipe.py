@@ -83,11 +83,12 @@ class BodyConfig:
     drop_unreached_parts: bool = True  # parts the outfit never reaches leave the collider
     # Parts whose contacts with other parts are neither repaired nor a reason to reject (a hand
     # resting on a thigh is a pose, not an error); they stay in the cloth collider only when the
-    # outfit reaches them (long sleeves reach the hands, long trouser legs the feet).
+    # outfit reaches them (outfit.dropped_parts_for: today all but the head), and the arm fit
+    # (arm_clearance) clears the hands that stay, which leave the cloth between no room.
     unrepaired_parts: list[str] = field(
         default_factory=lambda: ["hand_l", "hand_r", "foot_l", "foot_r", "head"]
     )
-    arm_clearance: bool = True  # abduct arms that would sit inside a broad subject's torso
+    arm_clearance: bool = True  # abduct arms (hands too) that would sit in a broad subject's trunk
     thinner_retries: int = 1  # retries with a thinner body before rejecting
     # Where skinning sinks a part into its neighbour across a flexed joint (hip, knee), both
     # surfaces meet at a shared contact surface this far apart (datagen.body.flexion): room for

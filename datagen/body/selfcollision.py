@@ -11,8 +11,8 @@ the whole garment, so the body is made intersection-free before it is simulated.
 - Classification: per frame and part pair, the intersection's extent and depth. Small ones between
   parts that meet at the armpits and the crotch are solvable; large ones, or ones between parts
   that should never meet (arm through torso, leg through leg), reject the sequence with the frame
-  range and a reason. Parts dropped from the collider (hands, forearms the outfit never reaches)
-  are ignored.
+  range and a reason. The parts the caller names are ignored (those dropped from the cloth
+  collider, and those whose contacts are poses: hands, feet, head; BodyConfig.unrepaired_parts).
 - Repair: the limb is pushed out of the torso (or the two thighs apart) along the contact normal,
   with a smooth falloff around the contact, until the gap is at least `gap` (4 mm).
 """

@@ -6,7 +6,7 @@ from collections import defaultdict
 
 import numpy as np
 
-from datagen.body.arm_clearance import clear_arms
+from datagen.body.arm_clearance import ARM_PARTS, clear_arms
 from datagen.body.base import BodyModel
 from datagen.body.flexion import separate_flexed_parts
 from datagen.body.parts import (
@@ -57,6 +57,19 @@ def _detector(rest: RestBody, ignore: frozenset[str] = frozenset(),
     # built before (a 1 m kick read 1105 flexion pairs after another subject, 1160 alone).
     return SelfCollisionDetector(rest.faces, rest.part_labels, rest.vertices, ignore,
                                  pairs=pairs, local_radius=local_radius)
+
+
+def _clearance_detector(rest: RestBody, repair_detector: SelfCollisionDetector,
+                        repair_ignored: frozenset[str],
+                        collider_dropped: frozenset[str]) -> SelfCollisionDetector:
+    """The arm fit's detector: the repair's, but seeing every arm part that stays in the cloth
+    collider. A hand is not repaired (resting on a thigh is a pose), yet a capture subject's
+    hands, swinging close to its own thighs, sank 3 cm into a broader subject's: the trousers
+    between had no room, and the cloth, pushed out of each surface into the other, ran away
+    (docs/simulator.md, "A hand sunk into a thigh")."""
+    arms = frozenset().union(*ARM_PARTS.values())
+    ignored = repair_ignored - (arms - collider_dropped)
+    return repair_detector if ignored == repair_ignored else _detector(rest, ignored)
 
 
 def repair_self_collisions(
@@ -204,7 +217,9 @@ def build_body_sequence(
         det = _detector(rest, dropped_parts)
         if config.arm_clearance:
             poses, added, posed = clear_arms(
-                model, rest, poses, moved.trans, det, config.repair_gap, moved.fps
+                model, rest, poses, moved.trans, _clearance_detector(rest, det, dropped_parts,
+                                                                     collider_dropped),
+                config.repair_gap, moved.fps
             )
         else:
             added = np.zeros((2, len(poses)))
