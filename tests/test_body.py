@@ -593,6 +593,9 @@ def test_hands_in_the_cloth_collider_are_cleared_of_the_thighs(body_model):
     and hips, with leather trousers between that had no room: every run ran away. Hands are not
     repaired (a hand on a thigh is a pose), but the arm fit clears them, as it clears the arms,
     wherever they stay in the cloth collider, and leaves them where the outfit drops them."""
+    from pathlib import Path
+
+    import datagen
     from datagen.body.sequence import build_body_sequence
     from datagen.motion.load import motion_from_spec
     from datagen.spec import MotionSpec, SubjectSpec
@@ -600,10 +603,6 @@ def test_hands_in_the_cloth_collider_are_cleared_of_the_thighs(body_model):
     subject = SubjectSpec(gender="female", shape={
         "age": 0.808971, "muscle": 0.230475, "weight": 0.069486, "height": 0.205981,
         "proportions": 0.674336})
-    from pathlib import Path
-
-    import datagen
-
     spec = MotionSpec(source="bvh", action="12_01_mb", file="data/mocap/cmu/12_01_mb.bvh",
                       start=0.490497, frames=90)
     motion = motion_from_spec(spec, Path(datagen.__file__).parent)
