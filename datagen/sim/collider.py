@@ -84,6 +84,27 @@ class TriangleGrid:
     items_alloc: int = 0
     tag: int = 0  # the collider's grid_tag when this grid was built
 
+    def reserve_cells(self, n_cells: int, block_sums: bool) -> None:
+        """Room for `n_cells` cells' counts (zero) and starts, half as many again when they
+        grow, and with `block_sums` for the parallel prefix's block sums (kernels.grid_prefix)."""
+        if n_cells + 1 <= self.n_cells_alloc:
+            return
+        self.n_cells_alloc = int((n_cells + 1) * 1.5)
+        self.counts = ti.ndarray(ti.i32, self.n_cells_alloc)
+        self.starts = ti.ndarray(ti.i32, self.n_cells_alloc + 1)
+        if block_sums:
+            self.block_starts = ti.ndarray(ti.i32, self.n_cells_alloc // K.PREFIX_BLOCK + 2)
+        self.counts.fill(0)
+
+    def reserve_items(self, entries: int, spare: float = 1.5) -> bool:
+        """Room for `entries` filed triangles (`spare` times as many when `items` grows);
+        whether it grew (a one-launch build that found it short filed nothing: run it again)."""
+        if self.items is not None and entries <= self.items_alloc:
+            return False
+        self.items_alloc = int(entries * spare) + 16
+        self.items = ti.ndarray(ti.i32, self.items_alloc)
+        return True
+
 
 class BodyCollider:
     """Holds the body's frames on the device; one instance per scene."""
@@ -287,25 +308,15 @@ class BodyCollider:
         kernels.count_triangle), growing its arrays where they are short."""
         n_cells = self.n_cells
         grid.tag = self.grid_tag
-        if n_cells + 1 > grid.n_cells_alloc:
-            grid.n_cells_alloc = int((n_cells + 1) * 1.5)
-            grid.counts = ti.ndarray(ti.i32, grid.n_cells_alloc)
-            grid.starts = ti.ndarray(ti.i32, grid.n_cells_alloc + 1)
-            if not backend.serial():  # the parallel prefix's block sums (K.grid_prefix)
-                grid.block_starts = ti.ndarray(ti.i32, grid.n_cells_alloc // K.PREFIX_BLOCK + 2)
-            grid.counts.fill(0)
+        grid.reserve_cells(n_cells, block_sums=not backend.serial())
         if backend.serial():
             # The grid in one launch (kernels.grid_build_serial), again with a longer `items`
             # when it did not fit.
-            if grid.items is None:
-                grid.items_alloc = 4 * len(self.faces_np) + 16
-                grid.items = ti.ndarray(ti.i32, grid.items_alloc)
+            grid.reserve_items(4 * len(self.faces_np), spare=1.0)  # a first guess, kept after
             args = (b0, b1, shift0, shift1, self.faces, self.mask, self.origin, self.inv_cell,
                     self.dims, n_cells, grid.counts, self.relative_travel, grid.tbox, grid.starts)
             total = K.grid_build_serial(*args, grid.items)
-            if total > grid.items_alloc:
-                grid.items_alloc = int(total * 1.5) + 16
-                grid.items = ti.ndarray(ti.i32, grid.items_alloc)
+            if grid.reserve_items(total):
                 K.grid_build_serial(*args, grid.items)
             return
         # Parallel backends from here: the kernels' `serialize` flags are False (a test runs
@@ -313,10 +324,7 @@ class BodyCollider:
         K.grid_count(b0, b1, shift0, shift1, self.faces, self.mask, self.origin, self.inv_cell,
                      self.dims, grid.counts, self.relative_travel, grid.tbox, False)
         K.grid_prefix(grid.counts, grid.starts, n_cells, grid.block_starts)
-        total = int(grid.starts[n_cells])
-        if total > grid.items_alloc:
-            grid.items_alloc = int(total * 1.5) + 16
-            grid.items = ti.ndarray(ti.i32, grid.items_alloc)
+        grid.reserve_items(int(grid.starts[n_cells]))
         K.grid_fill(self.mask, grid.tbox, self.origin, self.inv_cell, self.dims, grid.counts,
                     grid.starts, grid.items, False)
         K.grid_sort(grid.starts, grid.items, n_cells)
@@ -394,33 +402,20 @@ class BodyCollider:
         they are short."""
         grid = self._columns
         n_cols = int(dims[0] * dims[1])
-        if n_cols + 1 > grid.n_cells_alloc:
-            grid.n_cells_alloc = int((n_cols + 1) * 1.5)
-            grid.counts = ti.ndarray(ti.i32, grid.n_cells_alloc)
-            grid.starts = ti.ndarray(ti.i32, grid.n_cells_alloc + 1)
-        if grid.items_alloc == 0:
-            grid.items_alloc = 4 * len(self.faces_np) + 16
-            grid.items = ti.ndarray(ti.i32, grid.items_alloc)
+        grid.reserve_cells(n_cols, block_sums=not backend.serial())
+        grid.reserve_items(4 * len(self.faces_np), spare=1.0)  # a first guess, kept after
         if grid.tbox is None:
             grid.tbox = ti.ndarray(ti.math.ivec4, len(self.faces_np))  # the build's spans
         if backend.serial():
             args = (self.b1, self.faces, origin, inv_column, dims, grid.counts, grid.starts,
                     grid.tbox)
             total = K.column_grid_build(*args, grid.items)
-            if total > grid.items_alloc:
-                grid.items_alloc = int(total * 1.5) + 16
-                grid.items = ti.ndarray(ti.i32, grid.items_alloc)
+            if grid.reserve_items(total):
                 K.column_grid_build(*args, grid.items)
         else:  # as _fill's parallel grid: count, prefix sum, fill
-            if grid.block_starts is None or (
-                    grid.block_starts.shape[0] < grid.n_cells_alloc // K.PREFIX_BLOCK + 2):
-                grid.block_starts = ti.ndarray(ti.i32, grid.n_cells_alloc // K.PREFIX_BLOCK + 2)
             K.column_count(self.b1, self.faces, origin, inv_column, dims, grid.counts, grid.tbox)
             K.grid_prefix(grid.counts, grid.starts, n_cols, grid.block_starts)
-            total = int(grid.starts[n_cols])
-            if total > grid.items_alloc:
-                grid.items_alloc = int(total * 1.5) + 16
-                grid.items = ti.ndarray(ti.i32, grid.items_alloc)
+            grid.reserve_items(int(grid.starts[n_cols]))
             K.column_fill(grid.tbox, dims, grid.counts, grid.starts, grid.items)
 
     def nearest(self, x, w, tri, s: float, which: int = K.SEARCH_ALL, guard=None,
