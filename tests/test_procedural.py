@@ -297,6 +297,24 @@ def test_running_flight_is_ballistic(speed):
     assert body_weights.min() > -1e-3 and 2.0 < body_weights.max() < 3.5, body_weights.max()
 
 
+@pytest.mark.parametrize("speed", [0.8, 1.4, 2.0])
+def test_walking_pelvis_pushes_like_a_walker(speed):
+    # A walker's ground force stays within about 0.55-1.45 body weights, so the pelvis (standing
+    # in for the centre of mass) accelerates vertically by at most about 0.45 g either way. The
+    # vault over each stance leg alone kinked at every double support: 2 g upward at 1.8 m/s,
+    # and the rounding onto the standing cap 1.5 g downward, which shook loose shirts off the
+    # shoulders (docs/simulator.md, "The walk's double support"). It still rises and falls.
+    m = generate("walk", 480, 120.0, {"speed": speed, "turn": 0.0})
+    z = m.trans[:, 2]
+    curvature = (z[2:] - 2.0 * z[1:-1] + z[:-2]) * m.fps**2
+    assert np.abs(curvature).max() <= procedural.WALK_ACCELERATION_MAX + 0.05, np.abs(
+        curvature).max()
+    assert z.max() - z.min() > 0.005 + 0.02 * (speed - 0.8), z.max() - z.min()
+    # The same heights at any frame rate: 30 fps samples every fourth frame of 120 fps.
+    slow = generate("walk", 120, 30.0, {"speed": speed, "turn": 0.0})
+    np.testing.assert_allclose(slow.trans[:, 2], z[::4][:120], atol=1e-9)
+
+
 # -- jump and spin ----------------------------------------------------------------------------
 
 

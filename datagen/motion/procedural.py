@@ -539,6 +539,13 @@ _LANDING_RISE, _LANDING_FALL = 0.3, 0.3
 _TOE_OFF_RATE = 1.5
 _TAKE_OFF_RISE = 0.01
 _GAIT_START = 0.25  # the first frame's phase in the stride (0 = left heel strike)
+# Walking: the largest vertical acceleration of the pelvis either way (m/s^2): a ground force
+# within 0.55-1.45 body weights (a walker's peaks: about 1.2 at an ordinary pace, 1.5 at 2 m/s;
+# its dip at mid-stance 0.6-0.7). The vault's bound is sampled at _ENVELOPE_RATE (Hz) for it,
+# and varies by less than _VAULT_RANGE (m) over a stride.
+WALK_ACCELERATION_MAX = 0.45 * GRAVITY
+_ENVELOPE_RATE = 480.0
+_VAULT_RANGE = 0.08
 
 
 def _path(t: np.ndarray, speed: float, yaw0: float, turn: float) -> tuple[np.ndarray, np.ndarray]:
@@ -701,11 +708,51 @@ def _reach_height(plan: dict, root: np.ndarray, xy: np.ndarray, knee: float) -> 
     return out
 
 
-def _walk_height(plan: dict, root: np.ndarray, xy: np.ndarray, style: _GaitStyle) -> np.ndarray:
-    """Walking: vault over the stance leg, never above standing height."""
+def _vault_height(plan: dict, root: np.ndarray, xy: np.ndarray, style: _GaitStyle) -> np.ndarray:
+    """Walking's upper bound on the pelvis: vault over the stance leg, never above standing
+    height."""
     reach = _reach_height(plan, root, xy, style.knee * _DEG)
     cap = np.full(len(xy), PELVIS_STAND + 0.01)
     return _softmin(np.stack([reach[0], reach[1], cap], axis=-1), 0.015)[0]
+
+
+def _parabolic_envelope(values: np.ndarray, dt: float, curvature: float) -> np.ndarray:
+    """min over s of values(s) + curvature (t - s)^2 / 2 at every sample t of a uniform grid of
+    spacing `dt`: never above `values`, and nowhere curving up faster than `curvature`."""
+    width = int(math.ceil(math.sqrt(2.0 * _VAULT_RANGE / curvature) / dt))
+    offsets = np.arange(-width, width + 1)
+    padded = np.pad(values, width, constant_values=np.inf)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, len(offsets))
+    return (windows + 0.5 * curvature * (offsets * dt) ** 2).min(axis=1)
+
+
+def _walk_height(
+    t: np.ndarray, style: _GaitStyle, speed: float, amp: float, yaw0: float, turn: float,
+    back: float, bound: np.ndarray,
+) -> np.ndarray:
+    """Walking: the pelvis height (F,) at times `t`, under the vault's bound there (`bound`,
+    _vault_height). The vault alone meets the next stance leg's arc in a kink at every double
+    support, where the pelvis stopped falling and rose again within 50 ms (2 g upward at 1.8
+    m/s), and rounds onto the standing cap over the stance leg (1.5 g downward); a walker's
+    ground force stays within 0.55-1.45 body weights. So the height is the bound's
+    Lasry-Lions regularisation: its lower parabolic envelope at curvature a/2, then the upper
+    one of that at curvature a (a = WALK_ACCELERATION_MAX): never above the bound, and its
+    vertical acceleration within +-a. The arcs, which curve down at about v^2 / leg, are kept
+    where they are gentler than that. The bound is sampled on a fixed grid of absolute times
+    (_ENVELOPE_RATE), so the height does not depend on the frame rate."""
+    a = WALK_ACCELERATION_MAX
+    margin = 2.0 * math.sqrt(2.0 * _VAULT_RANGE / (0.5 * a))  # s: both envelopes' reach
+    k0 = math.floor((float(t[0]) - margin) * _ENVELOPE_RATE)
+    k1 = math.ceil((float(t[-1]) + margin) * _ENVELOPE_RATE)
+    grid = np.arange(k0, k1 + 1) / _ENVELOPE_RATE
+    plan = _feet_plan(grid, style, speed, yaw0, turn, back)
+    root, xy, _ = _gait_root(grid, plan, style, speed, amp, yaw0, turn)
+    dt = 1.0 / _ENVELOPE_RATE
+    lower = _parabolic_envelope(_vault_height(plan, root, xy, style), dt, 0.5 * a)
+    smooth = -_parabolic_envelope(-lower, dt, a)
+    # Between grid samples the bound can dip by a fraction of a millimetre below the samples'
+    # interpolation; the minimum keeps the legs within reach there.
+    return np.minimum(bound, np.interp(t, grid, smooth))
 
 
 def _run_height(
@@ -773,7 +820,8 @@ def _build_gait(style: _GaitStyle, t: np.ndarray, fps: float, p: dict[str, float
     root, xy, pelvis_yaw = _gait_root(t, plan, style, speed, amp, yaw0, turn)
     reach = _LEG_SOFT
     if style.stance_knee is None:
-        z = _walk_height(plan, root, xy, style)
+        z = _walk_height(t, style, speed, amp, yaw0, turn, back,
+                         _vault_height(plan, root, xy, style))
     else:
         z = _run_height(t, style, speed, amp, yaw0, turn, back)
         # The swing leg's footstep plan is in the world, and a flight carries the hip over it:
