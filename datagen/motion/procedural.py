@@ -23,7 +23,9 @@ Actions:
   path.
   Footsteps are planted along the path and each foot rolls heel - flat - ball - toe-off; the legs
   reach them by inverse kinematics and the pelvis rides as high as the stance legs allow, so the
-  stance foot does not slide while the root advances at exactly `speed`.
+  stance foot does not slide while the root advances at exactly `speed`; where the weight
+  passes from one leg to the other that height is rounded so the pelvis accelerates
+  vertically by at most 0.45 g either way (a walker's ground force: 0.55-1.45 body weights).
 - `run`: a running gait with a flight phase between steps; parameters as `walk`. The pelvis
   flies ballistically from each toe-off to the next touch-down, at heights that the knee's
   flexion there sets, and over each stance the ground pushes it with a smooth force that
