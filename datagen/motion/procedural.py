@@ -63,6 +63,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.ndimage import grey_dilation, grey_erosion
 
 from datagen.errors import InputError
 from datagen.rotations import matrix_to_axis_angle
@@ -718,14 +719,17 @@ def _vault_height(plan: dict, root: np.ndarray, xy: np.ndarray, style: _GaitStyl
     return _softmin(np.stack([reach[0], reach[1], cap], axis=-1), 0.015)[0]
 
 
-def _parabolic_envelope(values: np.ndarray, dt: float, curvature: float) -> np.ndarray:
-    """min over s of values(s) + curvature (t - s)^2 / 2 at every sample t of a uniform grid of
-    spacing `dt`: never above `values`, and nowhere curving up faster than `curvature`."""
-    width = int(math.ceil(math.sqrt(2.0 * _VAULT_RANGE / curvature) / dt))
-    offsets = np.arange(-width, width + 1)
-    padded = np.pad(values, width, constant_values=np.inf)
-    windows = np.lib.stride_tricks.sliding_window_view(padded, len(offsets))
-    return (windows + 0.5 * curvature * (offsets * dt) ** 2).min(axis=1)
+def _envelope_reach(curvature: float) -> float:
+    """How far (s) a parabolic envelope of `curvature` reaches over a bound that varies by less
+    than _VAULT_RANGE: no sample farther away can win."""
+    return math.sqrt(2.0 * _VAULT_RANGE / curvature)
+
+
+def _parabola(dt: float, curvature: float) -> np.ndarray:
+    """curvature (t - s)^2 / 2 over the offsets of a uniform grid of spacing `dt` that the
+    envelope reaches: the structuring element of scipy's grey erosion and dilation."""
+    width = int(math.ceil(_envelope_reach(curvature) / dt))
+    return 0.5 * curvature * (np.arange(-width, width + 1) * dt) ** 2
 
 
 def _walk_height(
@@ -743,15 +747,20 @@ def _walk_height(
     where they are gentler than that. The bound is sampled on a fixed grid of absolute times
     (_ENVELOPE_RATE), so the height does not depend on the frame rate."""
     a = WALK_ACCELERATION_MAX
-    margin = 2.0 * math.sqrt(2.0 * _VAULT_RANGE / (0.5 * a))  # s: both envelopes' reach
+    margin = _envelope_reach(0.5 * a) + _envelope_reach(a)  # s: both envelopes' reach
     k0 = math.floor((float(t[0]) - margin) * _ENVELOPE_RATE)
     k1 = math.ceil((float(t[-1]) + margin) * _ENVELOPE_RATE)
     grid = np.arange(k0, k1 + 1) / _ENVELOPE_RATE
     plan = _feet_plan(grid, style, speed, yaw0, turn, back)
     root, xy, _ = _gait_root(grid, plan, style, speed, amp, yaw0, turn)
     dt = 1.0 / _ENVELOPE_RATE
-    lower = _parabolic_envelope(_vault_height(plan, root, xy, style), dt, 0.5 * a)
-    smooth = -_parabolic_envelope(-lower, dt, a)
+    # The lower envelope is a grey erosion by the parabola (min of values + parabola), the
+    # upper one a grey dilation (max of values - parabola); beyond the grid nothing competes.
+    curve_up = _parabola(dt, 0.5 * a)
+    lower = grey_erosion(_vault_height(plan, root, xy, style), structure=-curve_up,
+                         mode="constant", cval=np.inf)
+    curve_down = _parabola(dt, a)
+    smooth = grey_dilation(lower, structure=-curve_down, mode="constant", cval=-np.inf)
     # Between grid samples the bound can dip by a fraction of a millimetre below the samples'
     # interpolation; the minimum keeps the legs within reach there.
     return np.minimum(bound, np.interp(t, grid, smooth))
