@@ -719,17 +719,30 @@ def _vault_height(plan: dict, root: np.ndarray, xy: np.ndarray, style: _GaitStyl
     return _softmin(np.stack([reach[0], reach[1], cap], axis=-1), 0.015)[0]
 
 
-def _envelope_reach(curvature: float) -> float:
-    """How far (s) a parabolic envelope of `curvature` reaches over a bound that varies by less
-    than _VAULT_RANGE: no sample farther away can win."""
-    return math.sqrt(2.0 * _VAULT_RANGE / curvature)
+def _envelope_reach(curvature: float, span: float = _VAULT_RANGE) -> float:
+    """How far (s) a parabolic envelope of `curvature` reaches over a curve whose values vary
+    by less than `span`: no sample farther away can win."""
+    return math.sqrt(2.0 * span / curvature)
 
 
-def _parabola(dt: float, curvature: float) -> np.ndarray:
+def _parabola(dt: float, curvature: float, span: float = _VAULT_RANGE) -> np.ndarray:
     """curvature (t - s)^2 / 2 over the offsets of a uniform grid of spacing `dt` that the
     envelope reaches: the structuring element of scipy's grey erosion and dilation."""
-    width = int(math.ceil(_envelope_reach(curvature) / dt))
+    width = int(math.ceil(_envelope_reach(curvature, span) / dt))
     return 0.5 * curvature * (np.arange(-width, width + 1) * dt) ** 2
+
+
+def _lasry_lions(values: np.ndarray, dt: float, curvature: float, span: float) -> np.ndarray:
+    """The Lasry-Lions regularisation of a curve sampled every `dt` s whose values vary by
+    less than `span`: its lower parabolic envelope at curvature/2, then the upper one of that at
+    `curvature`. The result is never above the curve, its second derivative is within
+    +-curvature, and it equals the curve wherever the curve is that gentle. The lower envelope
+    is a grey erosion by the parabola (min of values + parabola), the upper one a grey dilation
+    (max of values - parabola); beyond the samples nothing competes."""
+    lower = grey_erosion(values, structure=-_parabola(dt, 0.5 * curvature, span),
+                         mode="constant", cval=np.inf)
+    return grey_dilation(lower, structure=-_parabola(dt, curvature, span),
+                         mode="constant", cval=-np.inf)
 
 
 def _walk_height(
@@ -753,14 +766,8 @@ def _walk_height(
     grid = np.arange(k0, k1 + 1) / _ENVELOPE_RATE
     plan = _feet_plan(grid, style, speed, yaw0, turn, back)
     root, xy, _ = _gait_root(grid, plan, style, speed, amp, yaw0, turn)
-    dt = 1.0 / _ENVELOPE_RATE
-    # The lower envelope is a grey erosion by the parabola (min of values + parabola), the
-    # upper one a grey dilation (max of values - parabola); beyond the grid nothing competes.
-    curve_up = _parabola(dt, 0.5 * a)
-    lower = grey_erosion(_vault_height(plan, root, xy, style), structure=-curve_up,
-                         mode="constant", cval=np.inf)
-    curve_down = _parabola(dt, a)
-    smooth = grey_dilation(lower, structure=-curve_down, mode="constant", cval=-np.inf)
+    smooth = _lasry_lions(_vault_height(plan, root, xy, style), 1.0 / _ENVELOPE_RATE, a,
+                          _VAULT_RANGE)
     # Between grid samples the bound can dip by a fraction of a millimetre below the samples'
     # interpolation; the minimum keeps the legs within reach there.
     return np.minimum(bound, np.interp(t, grid, smooth))
@@ -913,12 +920,33 @@ _HEEL_LEVER = float(np.hypot(_FOOT[1], _FOOT[2]))  # ankle to ball, in the sagit
 _HEEL_PHASE = float(np.arctan2(-_FOOT[2], -_FOOT[1]))  # its elevation with the foot flat
 _HEEL_START = PELVIS_STAND + 0.004  # standing upright, the heels start to rise around here
 _HEEL_SOFT = 0.012  # m, softness of that start
+# Through the take-off and the touch-down the knees hand the leg's lengthening over to the
+# heels; at the pelvis's speed there (up to 2.8 m/s) a 12 mm onset took 5 ms and jerked the
+# knees at 250-300 m/s^2. The onset's softness grows with that speed, to span this time.
+_HEEL_SOFT_TIME = 0.015  # s
+# The virtual height's largest acceleration between the extension after take-off and the
+# tuck at the apex (m/s^2).
+_TUCK_ACCELERATION = 45.0
+# The ground's largest push on the pelvis, in body weights (|a + g| / g): a maximal
+# countermovement or standing long jump pushes with about 2-2.8, a landing from a jump ranges
+# from about 2.5 (soft) to 6 (stiff); CMU's jumps reach 3.4-4.9 at the pelvis.
+JUMP_PUSH_FORCE_MAX = 3.0
+JUMP_LANDING_FORCE_MAX = 4.0
+# The trunk's lean and the arms' swing are keyed in time; where keys come too close for these
+# angular accelerations (rad/s^2) the swing falls short instead. The trunk's bound keeps the
+# neck within about 30 m/s^2 of the pelvis (CMU's jumps: 40-60 at the neck); the arms' keeps a
+# full swing at the default tempo (hands: CMU's jumps reach 95-130 m/s^2).
+JUMP_TRUNK_ANGULAR_ACCELERATION_MAX = 60.0
+JUMP_ARM_ANGULAR_ACCELERATION_MAX = 150.0
 
 
-def _heel_pitch(root: np.ndarray, pelvis: np.ndarray, balls: np.ndarray) -> np.ndarray:
+def _heel_pitch(
+    root: np.ndarray, pelvis: np.ndarray, balls: np.ndarray, soft: np.ndarray | float = _HEEL_SOFT
+) -> np.ndarray:
     """Heel raise (2, F) about the balls that keeps each leg no longer than when standing
-    (knees as in the rest stance) however high or far the pelvis is; a softplus makes the onset
-    smooth, and below the onset the knees bend instead."""
+    (knees as in the rest stance) however high or far the pelvis is; a softplus of softness
+    `soft` (m, scalar or (F,)) makes the onset smooth, and below the onset the knees bend
+    instead."""
     rest = _REST[_J["left_ankle"]] - _REST[_J["left_hip"]]
     length = math.hypot(rest[0], rest[1], _HEEL_START + _HIP_OFFSET[2] - ANKLE_HEIGHT)
     out = np.empty(balls.shape[:2])
@@ -930,7 +958,7 @@ def _heel_pitch(root: np.ndarray, pelvis: np.ndarray, balls: np.ndarray) -> np.n
             ankle = balls[k] + (_ankle_offset(pitch) * flip)
             horiz = np.sum((hip[:, :2] - ankle[:, :2]) ** 2, axis=-1)
             need = hip[:, 2] - np.sqrt(np.maximum(length**2 - horiz, 0.01)) - ANKLE_HEIGHT
-            rise = _HEEL_SOFT * np.logaddexp(0.0, need / _HEEL_SOFT)
+            rise = soft * np.logaddexp(0.0, need / soft)
             cap = np.stack([-_FOOT[2] + rise, np.full(len(rise), 0.98 * _HEEL_LEVER)], -1)
             height = _softmin(cap, 0.004)[0]  # at most about 70 degrees, without a kink
             pitch = np.arcsin(height / _HEEL_LEVER) - _HEEL_PHASE
@@ -946,6 +974,41 @@ def _ground_time(dist: float, v: float) -> float:
     return (-v / 2.0 + math.sqrt(v * v / 4.0 + 4.0 * a * dist)) / (2.0 * a)
 
 
+def _ground_depth(duration: float, v: float) -> float:
+    """The distance the pelvis covers in a ground phase of `duration` (inverse of
+    _ground_time)."""
+    return GRAVITY * duration**2 / 12.0 + 0.5 * v * duration
+
+
+_GROUND_S = np.linspace(0.0, 1.0, 65)
+
+
+def _ground_force(duration: float, v: float, vh: float) -> float:
+    """Peak ground force (in body weights) of a ground phase of `duration` from rest to
+    vertical speed `v` and horizontal speed `vh`: the vertical quartic's acceleration is
+    2g s + 6 (v / T) s (1 - s) - 3 g s^2 at s = t / T, the horizontal quintic's (smootherstep
+    speed) 30 (vh / T) s^2 (1 - s)^2."""
+    s = _GROUND_S
+    up = GRAVITY + 2.0 * GRAVITY * s + 6.0 * v / duration * s * (1.0 - s) - 3.0 * GRAVITY * s * s
+    forward = 30.0 * vh / duration * (s * (1.0 - s)) ** 2
+    return float(np.hypot(up, forward).max()) / GRAVITY
+
+
+def _bounded_ground_time(dist: float, v: float, vh: float, force: float) -> float:
+    """The duration of a ground phase covering at least `dist` whose peak force stays within
+    `force` body weights: _ground_time's, or longer (and deeper) where that one is too stiff."""
+    lo = _ground_time(dist, v)
+    if _ground_force(lo, v, vh) <= force:
+        return lo
+    hi = 2.0 * lo
+    while _ground_force(hi, v, vh) > force:
+        hi *= 2.0
+    for _ in range(40):  # the force falls as the phase lengthens: bisect
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if _ground_force(mid, v, vh) > force else (lo, mid)
+    return hi
+
+
 def _jump_flight(height: float, ext: float, tuck: float) -> tuple[float, float, float, float]:
     """Take-off speed, flight time, extension time and tuck time for a given tuck depth."""
     v0 = math.sqrt(2.0 * GRAVITY * max(height - tuck, 1e-4))
@@ -957,20 +1020,38 @@ def _jump_flight(height: float, ext: float, tuck: float) -> tuple[float, float, 
     return v0, t_fly, t_ext, 0.5 * t_fly - t_ext
 
 
+def _air_legs(height: float) -> tuple[float, float]:
+    """How far the legs extend after take-off and tuck at the apex (m of virtual height).
+
+    Just after take-off the legs finish extending (heels up to about 45 degrees), then tuck at
+    the apex, which gives part of the clearance: at most 45 % of the height, and no deeper than
+    the time to the apex allows the virtual height to move from the extension to the tuck at
+    _TUCK_ACCELERATION. A low jump's short flight leaves no time for a tuck, and less for the
+    extension: it shrinks too (a 5 cm hop had swung the knees at 150 m/s^2)."""
+
+    def room(ext: float, tuck: float) -> float:
+        t_tuck = _jump_flight(height, ext, tuck)[3]
+        return _TUCK_ACCELERATION * t_tuck**2 / 5.77 - (ext + tuck)  # smootherstep's peak
+
+    ext = min(0.065, 0.015 + 0.25 * height)
+    if room(ext, 0.0) < 0.0:
+        lo, hi = 0.0, ext
+        for _ in range(40):  # the room shrinks as the extension grows: bisect
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if room(mid, 0.0) >= 0.0 else (lo, mid)
+        return lo, 0.0
+    lo, hi = 0.0, 0.45 * height
+    for _ in range(40):  # the affordable tuck shrinks as the tuck deepens: bisect
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if room(ext, mid) >= 0.0 else (lo, mid)
+    return ext, lo
+
+
 def _jump_timeline(p: dict[str, float]) -> dict[str, float]:
     tempo, height = p["speed"], p["height"]
     # Take-off: heels about 10 degrees up; lower for forward jumps (the body leans forward).
     z_to = _HEEL_START + 0.02 - 0.06 * p["distance"]
-    # Just after take-off the legs finish extending (heels up to about 45 degrees), then tuck
-    # at the apex, which gives part of the clearance: as deep as the time in the air allows a
-    # gentle tuck (peak virtual acceleration about 15 m/s^2), at most 45 % of the height.
-    ext = min(0.065, 0.015 + 0.25 * height)
-    lo, hi = 0.0, 0.45 * height
-    for _ in range(40):  # the affordable tuck shrinks as the tuck deepens: bisect
-        mid = 0.5 * (lo + hi)
-        t_tuck = _jump_flight(height, ext, mid)[3]
-        lo, hi = (mid, hi) if 15.0 * t_tuck**2 / 5.77 > mid else (lo, mid)
-    tuck = lo
+    ext, tuck = _air_legs(height)
     v0, t_fly, t_ext, _ = _jump_flight(height, ext, tuck)
     depth = (0.14 + 0.25 * height) * p["amplitude"]
     k = {
@@ -983,8 +1064,20 @@ def _jump_timeline(p: dict[str, float]) -> dict[str, float]:
         "z_low": PELVIS_STAND - depth,
         "z_land": PELVIS_STAND - 0.8 * depth,
     }
-    k["t_push"] = _ground_time(z_to - k["z_low"], v0)
-    k["t_land"] = _ground_time(z_to - k["z_land"], v0)
+    # The crouch and the landing are as deep as `amplitude` asks, or deeper where the ground
+    # force would pass JUMP_PUSH_FORCE_MAX or JUMP_LANDING_FORCE_MAX: a shallow crouch before
+    # a high or long jump pushes for too short a time. The forward speed depends on both
+    # durations, which it lengthens in turn: a few rounds settle it.
+    dist = p["distance"]
+    t_push, t_land = _ground_time(z_to - k["z_low"], v0), _ground_time(z_to - k["z_land"], v0)
+    for _ in range(4):
+        vh = dist / (t_fly + 0.5 * (t_push + t_land))
+        t_push = _bounded_ground_time(z_to - k["z_low"], v0, vh, JUMP_PUSH_FORCE_MAX)
+        t_land = _bounded_ground_time(z_to - k["z_land"], v0, vh, JUMP_LANDING_FORCE_MAX)
+    k["t_push"], k["t_land"] = t_push, t_land
+    k["z_low"] = z_to - _ground_depth(t_push, v0)
+    k["z_land"] = z_to - _ground_depth(t_land, v0)
+    k["vh"] = dist / (t_fly + 0.5 * (t_push + t_land))
     k["hold"] = 0.3 / tempo
     k["bottom"] = k["hold"] + 0.5 / tempo
     k["takeoff"] = k["bottom"] + k["t_push"]
@@ -1022,6 +1115,22 @@ def _jump_heights(tc: np.ndarray, k: dict[str, float]) -> tuple[np.ndarray, np.n
     return z, zv
 
 
+def _bounded_keys(
+    tc: np.ndarray, period: float, times, values: np.ndarray, curvature: float
+) -> np.ndarray:
+    """_keys through a cycle of `period` s, Lasry-Lions regularised so that the curve's second
+    derivative stays within +-`curvature`: a swing that the keys' spacing would make too abrupt
+    falls short of its key instead. Sampled on a fixed grid of cycle times (_ENVELOPE_RATE), so
+    the curve does not depend on the frame rate."""
+    span = float(np.ptp(values)) + 1e-9
+    margin = _envelope_reach(0.5 * curvature, span) + _envelope_reach(curvature, span)
+    grid = np.arange(math.floor(-margin * _ENVELOPE_RATE),
+                     math.ceil((period + margin) * _ENVELOPE_RATE) + 1) / _ENVELOPE_RATE
+    smooth = _lasry_lions(_keys(grid, times, values, period), 1.0 / _ENVELOPE_RATE, curvature,
+                          span)
+    return np.interp(tc, grid, smooth)
+
+
 def _build_jump(t: np.ndarray, fps: float, p: dict[str, float]) -> _Built:
     k = _jump_timeline(p)
     n, amp = len(t), p["amplitude"]
@@ -1033,8 +1142,7 @@ def _build_jump(t: np.ndarray, fps: float, p: dict[str, float]) -> _Built:
     t_ab, t_st = k["absorbed"], k["stand"]
 
     # Forward travel: speed up during the push, constant in the air, brake while landing.
-    dist = p["distance"]
-    vh = dist / (k["t_fly"] + 0.5 * (k["t_push"] + k["t_land"]))
+    dist, vh = p["distance"], k["vh"]
     y_to = -0.5 * vh * k["t_push"]
     y_td = y_to - vh * k["t_fly"]
     y = np.zeros(n)
@@ -1050,30 +1158,28 @@ def _build_jump(t: np.ndarray, fps: float, p: dict[str, float]) -> _Built:
     # Lean and hips back in the crouches; the arms swing back, then up through the take-off.
     scale = 0.6 + 0.4 * amp
     t_fly, t_down = k["t_fly"], t_b - t_h
-    lean_key = _keys(
-        tc,
+    lean_max = (40 * scale + 12 * dist) * _DEG
+    lean = _bounded_keys(
+        tc, period,
         [0, t_h, t_b - 0.2 * t_down, t_to, t_td, t_ab, t_st, period],
-        [0, 0, 1, 0.25, 0.15, 0.8, 0, 0],
+        lean_max * np.array([0, 0, 1, 0.25, 0.15, 0.8, 0, 0]),
+        JUMP_TRUNK_ANGULAR_ACCELERATION_MAX,
     )
-    lean = (40 * scale + 12 * dist) * _DEG * lean_key
-    back = 0.08 * scale * lean_key
-    arm = (
-        _DEG
-        * amp
-        * _keys(
-            tc,
-            [
-                0,
-                t_h,
-                t_b - 0.1 * t_down,
-                t_to + 0.35 * t_fly,
-                t_td - 0.1 * t_fly,
-                t_ab + 0.3 * (t_st - t_ab),
-                t_st + 0.4 * (period - t_st),
-                period,
-            ],
-            [0, 0, -40, 110, 60, 35, 0, 0],
-        )
+    back = 0.08 * scale * lean / lean_max
+    arm = _bounded_keys(
+        tc, period,
+        [
+            0,
+            t_h,
+            t_b - 0.1 * t_down,
+            t_to + 0.35 * t_fly,
+            t_td - 0.1 * t_fly,
+            t_ab + 0.3 * (t_st - t_ab),
+            t_st + 0.4 * (period - t_st),
+            period,
+        ],
+        amp * _DEG * np.array([0, 0, -40, 110, 60, 35, 0, 0]),
+        JUMP_ARM_ANGULAR_ACCELERATION_MAX,
     )
     soft_abs = np.sqrt(arm * arm + (10 * _DEG) ** 2) - 10 * _DEG  # no kink at zero
     arms = {
@@ -1090,7 +1196,10 @@ def _build_jump(t: np.ndarray, fps: float, p: dict[str, float]) -> _Built:
     # Toes point in the air (a C2 bump over the flight), otherwise the heels follow z_v.
     air = _compact((tc - 0.5 * (t_to + t_td)) / (0.5 * (t_td - t_to)))
     virtual = np.column_stack([np.zeros(n), y + back, zv])
-    heel = _heel_pitch(root, virtual, balls)
+    h = 1e-3  # s: the virtual height's rate, by central difference of the exact curve
+    rate = (_jump_heights(tc + h, k)[1] - _jump_heights(tc - h, k)[1]) / (2.0 * h)
+    soft = np.hypot(_HEEL_SOFT, _HEEL_SOFT_TIME * rate)
+    heel = _heel_pitch(root, virtual, balls, soft)
     pitch = heel + air * (40.0 * _DEG - 0.6 * heel)  # never below the heel pitch (leg length)
     _legs(pose, root, virtual, balls, pitch)
     return _finish(pose, root, np.column_stack([np.zeros(n), y + back, z]))
