@@ -1024,14 +1024,16 @@ def _air_legs(height: float) -> tuple[float, float]:
     """How far the legs extend after take-off and tuck at the apex (m of virtual height).
 
     Just after take-off the legs finish extending (heels up to about 45 degrees), then tuck at
-    the apex, which gives part of the clearance: at most 45 % of the height, and no deeper than
-    the time to the apex allows the virtual height to move from the extension to the tuck at
-    _TUCK_ACCELERATION. A low jump's short flight leaves no time for a tuck, and less for the
-    extension: it shrinks too (a 5 cm hop had swung the knees at 150 m/s^2)."""
+    the apex, which gives part of the clearance: as deep as the time in the air allows a gentle
+    tuck (what 15 m/s^2 covers over the time to the apex), at most 45 % of the height. And the
+    virtual height must get from the extension down to the tuck within _TUCK_ACCELERATION: a
+    low jump's short flight leaves no time for a tuck, and less for the extension, which
+    shrinks too (a 5 cm hop had swung the knees at 150 m/s^2)."""
 
     def room(ext: float, tuck: float) -> float:
         t_tuck = _jump_flight(height, ext, tuck)[3]
-        return _TUCK_ACCELERATION * t_tuck**2 / 5.77 - (ext + tuck)  # smootherstep's peak
+        reach = t_tuck**2 / 5.77  # smootherstep's peak acceleration, per unit of it
+        return min(15.0 * reach - tuck, _TUCK_ACCELERATION * reach - (ext + tuck))
 
     ext = min(0.065, 0.015 + 0.25 * height)
     if room(ext, 0.0) < 0.0:
