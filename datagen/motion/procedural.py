@@ -35,7 +35,12 @@ Actions:
 - `jump`: stand, countermovement, push-off, ballistic flight, landing absorption, recovery,
   repeated; `height` (0.05 to 0.4 m, default 0.2) is how far the soles clear the ground at the
   apex, `distance` (0 to 0.8 m) how far forward each jump goes, `amplitude` scales the crouch
-  depth and the arm swing.
+  depth and the arm swing. The ground pushes the pelvis with at most 3 body weights at the
+  take-off and 4 at the landing: where a shallow crouch would push or land too hard the crouch
+  or the landing goes deeper and lasts longer. The trunk's lean and the arms' swing keep their
+  angular acceleration within 60 and 150 rad/s^2 and the arms' speed within 15 rad/s (a swing
+  the keys would make more abrupt falls short of its key), so the neck and head stay within
+  CMU's jumps' accelerations.
 - `spin`: a turn in place on the balls of the feet at `revs` (0.25 to 2.5, default 1)
   revolutions per second, counter-clockwise seen from above (mirror for the other sense);
   `speed` sets the tempo of the small bounce and arm motion.
@@ -164,6 +169,10 @@ def _rz(a):
 
 # Conjugation by the x-reflection: a left-side rotation -> the mirrored right-side rotation.
 _MIRROR_SIGN = np.array([[1.0, -1.0, -1.0], [-1.0, 1.0, 1.0], [-1.0, 1.0, 1.0]])
+
+
+# The peak acceleration of a smootherstep over a unit step in a unit time: 10 / sqrt(3).
+_SMOOTHERSTEP_PEAK = 10.0 / math.sqrt(3.0)
 
 
 def _smootherstep(x: np.ndarray | float) -> np.ndarray:
@@ -719,30 +728,17 @@ def _vault_height(plan: dict, root: np.ndarray, xy: np.ndarray, style: _GaitStyl
     return _softmin(np.stack([reach[0], reach[1], cap], axis=-1), 0.015)[0]
 
 
-def _envelope_reach(curvature: float, span: float = _VAULT_RANGE) -> float:
-    """How far (s) a parabolic envelope of `curvature` reaches over a curve whose values vary
-    by less than `span`: no sample farther away can win."""
-    return math.sqrt(2.0 * span / curvature)
+def _envelope_reach(curvature: float) -> float:
+    """How far (s) a parabolic envelope of `curvature` reaches over a bound that varies by less
+    than _VAULT_RANGE: no sample farther away can win."""
+    return math.sqrt(2.0 * _VAULT_RANGE / curvature)
 
 
-def _parabola(dt: float, curvature: float, span: float = _VAULT_RANGE) -> np.ndarray:
+def _parabola(dt: float, curvature: float) -> np.ndarray:
     """curvature (t - s)^2 / 2 over the offsets of a uniform grid of spacing `dt` that the
     envelope reaches: the structuring element of scipy's grey erosion and dilation."""
-    width = int(math.ceil(_envelope_reach(curvature, span) / dt))
+    width = int(math.ceil(_envelope_reach(curvature) / dt))
     return 0.5 * curvature * (np.arange(-width, width + 1) * dt) ** 2
-
-
-def _lasry_lions(values: np.ndarray, dt: float, curvature: float, span: float) -> np.ndarray:
-    """The Lasry-Lions regularisation of a curve sampled every `dt` s whose values vary by
-    less than `span`: its lower parabolic envelope at curvature/2, then the upper one of that at
-    `curvature`. The result is never above the curve, its second derivative is within
-    +-curvature, and it equals the curve wherever the curve is that gentle. The lower envelope
-    is a grey erosion by the parabola (min of values + parabola), the upper one a grey dilation
-    (max of values - parabola); beyond the samples nothing competes."""
-    lower = grey_erosion(values, structure=-_parabola(dt, 0.5 * curvature, span),
-                         mode="constant", cval=np.inf)
-    return grey_dilation(lower, structure=-_parabola(dt, curvature, span),
-                         mode="constant", cval=-np.inf)
 
 
 def _walk_height(
@@ -766,8 +762,14 @@ def _walk_height(
     grid = np.arange(k0, k1 + 1) / _ENVELOPE_RATE
     plan = _feet_plan(grid, style, speed, yaw0, turn, back)
     root, xy, _ = _gait_root(grid, plan, style, speed, amp, yaw0, turn)
-    smooth = _lasry_lions(_vault_height(plan, root, xy, style), 1.0 / _ENVELOPE_RATE, a,
-                          _VAULT_RANGE)
+    dt = 1.0 / _ENVELOPE_RATE
+    # The lower envelope is a grey erosion by the parabola (min of values + parabola), the
+    # upper one a grey dilation (max of values - parabola); beyond the grid nothing competes.
+    curve_up = _parabola(dt, 0.5 * a)
+    lower = grey_erosion(_vault_height(plan, root, xy, style), structure=-curve_up,
+                         mode="constant", cval=np.inf)
+    curve_down = _parabola(dt, a)
+    smooth = grey_dilation(lower, structure=-curve_down, mode="constant", cval=-np.inf)
     # Between grid samples the bound can dip by a fraction of a millimetre below the samples'
     # interpolation; the minimum keeps the legs within reach there.
     return np.minimum(bound, np.interp(t, grid, smooth))
@@ -929,15 +931,18 @@ _HEEL_SOFT_TIME = 0.015  # s
 _TUCK_ACCELERATION = 45.0
 # The ground's largest push on the pelvis, in body weights (|a + g| / g): a maximal
 # countermovement or standing long jump pushes with about 2-2.8, a landing from a jump ranges
-# from about 2.5 (soft) to 6 (stiff); CMU's jumps reach 3.4-4.9 at the pelvis.
+# from about 2.5 (soft) to 6 (stiff); CMU's jumps reach 3.1-4.9 at the pelvis.
 JUMP_PUSH_FORCE_MAX = 3.0
 JUMP_LANDING_FORCE_MAX = 4.0
 # The trunk's lean and the arms' swing are keyed in time; where keys come too close for these
-# angular accelerations (rad/s^2) the swing falls short instead. The trunk's bound keeps the
-# neck within about 30 m/s^2 of the pelvis (CMU's jumps: 40-60 at the neck); the arms' keeps a
-# full swing at the default tempo (hands: CMU's jumps reach 95-130 m/s^2).
+# angular accelerations (rad/s^2) and, for the arms, speed (rad/s), the swing falls short of
+# its key instead (_limited_keys). The trunk's bound keeps the neck within about 30 m/s^2 of the
+# pelvis (CMU's jumps: 42-63 at the neck); the arms' keep the default jump's full swing (13.9
+# rad/s at most; a countermovement jump's arms peak at about 12-17) and bring the hands of the
+# most abrupt parameters from 275 to 190 m/s^2 (CMU's jumps: 47-128).
 JUMP_TRUNK_ANGULAR_ACCELERATION_MAX = 60.0
 JUMP_ARM_ANGULAR_ACCELERATION_MAX = 150.0
+JUMP_ARM_ANGULAR_SPEED_MAX = 15.0
 
 
 def _heel_pitch(
@@ -1032,7 +1037,7 @@ def _air_legs(height: float) -> tuple[float, float]:
 
     def room(ext: float, tuck: float) -> float:
         t_tuck = _jump_flight(height, ext, tuck)[3]
-        reach = t_tuck**2 / 5.77  # smootherstep's peak acceleration, per unit of it
+        reach = t_tuck**2 / _SMOOTHERSTEP_PEAK  # the distance a unit acceleration covers
         return min(15.0 * reach - tuck, _TUCK_ACCELERATION * reach - (ext + tuck))
 
     ext = min(0.065, 0.015 + 0.25 * height)
@@ -1117,20 +1122,28 @@ def _jump_heights(tc: np.ndarray, k: dict[str, float]) -> tuple[np.ndarray, np.n
     return z, zv
 
 
-def _bounded_keys(
-    tc: np.ndarray, period: float, times, values: np.ndarray, curvature: float
+def _limited_keys(
+    times, values: np.ndarray, curvature: float, speed: float = math.inf
 ) -> np.ndarray:
-    """_keys through a cycle of `period` s, Lasry-Lions regularised so that the curve's second
-    derivative stays within +-`curvature`: a swing that the keys' spacing would make too abrupt
-    falls short of its key instead. Sampled on a fixed grid of cycle times (_ENVELOPE_RATE), so
-    the curve does not depend on the frame rate."""
-    span = float(np.ptp(values)) + 1e-9
-    margin = _envelope_reach(0.5 * curvature, span) + _envelope_reach(curvature, span)
-    grid = np.arange(math.floor(-margin * _ENVELOPE_RATE),
-                     math.ceil((period + margin) * _ENVELOPE_RATE) + 1) / _ENVELOPE_RATE
-    smooth = _lasry_lions(_keys(grid, times, values, period), 1.0 / _ENVELOPE_RATE, curvature,
-                          span)
-    return np.interp(tc, grid, smooth)
+    """Key values for _keys whose every segment accelerates by at most `curvature` and moves at
+    most at `speed` (a smootherstep's peaks are _SMOOTHERSTEP_PEAK |dv| / dt^2 and 1.875 |dv| /
+    dt): a key that its neighbours' spacing would make too abrupt to reach moves toward them
+    instead, so the swing falls short of it. The first and last keys (the rest pose) stay.
+    Alternate sweeps clamp each key to its neighbours' reach until none moves; a key only ever
+    moves toward its neighbours, so this ends, and keys within reach are kept as they are."""
+    dt = np.diff(np.asarray(times, dtype=np.float64))
+    reach = np.minimum(curvature * dt**2 / _SMOOTHERSTEP_PEAK, speed * dt / 1.875)
+    out = np.array(values, dtype=np.float64)
+    last = len(out) - 1
+    for _ in range(4 * len(out)):
+        before = out.copy()
+        for i in range(1, last):
+            out[i] = np.clip(out[i], out[i - 1] - reach[i - 1], out[i - 1] + reach[i - 1])
+        for i in range(last - 1, 0, -1):
+            out[i] = np.clip(out[i], out[i + 1] - reach[i], out[i + 1] + reach[i])
+        if np.array_equal(out, before):
+            break
+    return out
 
 
 def _build_jump(t: np.ndarray, fps: float, p: dict[str, float]) -> _Built:
@@ -1161,28 +1174,25 @@ def _build_jump(t: np.ndarray, fps: float, p: dict[str, float]) -> _Built:
     scale = 0.6 + 0.4 * amp
     t_fly, t_down = k["t_fly"], t_b - t_h
     lean_max = (40 * scale + 12 * dist) * _DEG
-    lean = _bounded_keys(
-        tc, period,
-        [0, t_h, t_b - 0.2 * t_down, t_to, t_td, t_ab, t_st, period],
-        lean_max * np.array([0, 0, 1, 0.25, 0.15, 0.8, 0, 0]),
-        JUMP_TRUNK_ANGULAR_ACCELERATION_MAX,
-    )
+    lean_times = [0, t_h, t_b - 0.2 * t_down, t_to, t_td, t_ab, t_st, period]
+    lean_values = _limited_keys(lean_times,
+                                lean_max * np.array([0, 0, 1, 0.25, 0.15, 0.8, 0, 0]),
+                                JUMP_TRUNK_ANGULAR_ACCELERATION_MAX)
+    lean = _keys(tc, lean_times, lean_values)
     back = 0.08 * scale * lean / lean_max
-    arm = _bounded_keys(
-        tc, period,
-        [
-            0,
-            t_h,
-            t_b - 0.1 * t_down,
-            t_to + 0.35 * t_fly,
-            t_td - 0.1 * t_fly,
-            t_ab + 0.3 * (t_st - t_ab),
-            t_st + 0.4 * (period - t_st),
-            period,
-        ],
-        amp * _DEG * np.array([0, 0, -40, 110, 60, 35, 0, 0]),
-        JUMP_ARM_ANGULAR_ACCELERATION_MAX,
-    )
+    arm_times = [
+        0,
+        t_h,
+        t_b - 0.1 * t_down,
+        t_to + 0.35 * t_fly,
+        t_td - 0.1 * t_fly,
+        t_ab + 0.3 * (t_st - t_ab),
+        t_st + 0.4 * (period - t_st),
+        period,
+    ]
+    arm_values = _limited_keys(arm_times, amp * _DEG * np.array([0, 0, -40, 110, 60, 35, 0, 0]),
+                               JUMP_ARM_ANGULAR_ACCELERATION_MAX, JUMP_ARM_ANGULAR_SPEED_MAX)
+    arm = _keys(tc, arm_times, arm_values)
     soft_abs = np.sqrt(arm * arm + (10 * _DEG) ** 2) - 10 * _DEG  # no kink at zero
     arms = {
         "fwd": ARM_FORWARD + arm,
