@@ -353,10 +353,9 @@ def test_jump_stays_within_the_accelerations_of_real_jumps():
     # body weights), the trunk's lean was keyed over the landing's 0.05-0.1 s (the neck at up to
     # 350 m/s^2, the head 420), the knees handed the take-off over to the heels in 5 ms (250 m/s^2)
     # and the arms swung through 225 degrees in 0.4 s and up to 165 degrees in a 0.2 s flight
-    # (hands 310 m/s^2). CMU's jumps (13_11,
-    # 02_04, 01_01, 13_10; 40 ms box) peak at 32-39 m/s^2 at the pelvis, 42-63 at the neck, 43-79
-    # at the head, 48-106 at the knees and 47-128 at the hands (docs/simulator.md, "The jump's
-    # accelerations").
+    # (hands 310 m/s^2). CMU's jumps (13_11, 02_04, 01_01, 13_10; 40 ms box) peak at 32-39 m/s^2
+    # at the pelvis, 42-63 at the neck, 43-79 at the head, 48-106 at the knees and 47-128 at the
+    # hands (docs/simulator.md, "The jump's accelerations").
     fps = 120.0
     worst = {"neck": 0.0, "head": 0.0, "left_knee": 0.0, "left_hand": 0.0}
     for params in JUMP_CORNERS:
@@ -386,8 +385,8 @@ def test_jump_stays_within_the_accelerations_of_real_jumps():
 
 def test_jump_keeps_its_swing_where_the_keys_are_gentle():
     # The bounds on the trunk's and the arms' swing only shorten swings that the keys would make
-    # too abrupt: keys within reach are kept exactly (the default jump's lean and arms are as
-    # they were), and a key out of reach moves only as far as the bounds need.
+    # too abrupt: keys within reach are kept exactly (the default jump's arms are as they
+    # were), and a key out of reach moves only as far as the bounds need.
     times = [0.0, 0.3, 0.75, 1.1, 1.5, 2.0]
     gentle = np.radians([0.0, 0.0, -40.0, 110.0, 35.0, 0.0])
     np.testing.assert_array_equal(procedural._limited_keys(times, gentle, 150.0, 15.0), gentle)
@@ -398,13 +397,8 @@ def test_jump_keeps_its_swing_where_the_keys_are_gentle():
     assert abrupt[0] == 0.0 and abrupt[-1] == 0.0
     assert np.degrees(abrupt[3]) == pytest.approx(np.degrees(abrupt[2]) + np.degrees(
         15.0 * 0.35 / 1.875), abs=1e-6)  # the up-swing at the speed bound, from the back-swing
-    p = procedural.resolve_params("jump", {})
-    k = procedural._jump_timeline(p)
-    t_h, t_b, t_to, t_fly = k["hold"], k["bottom"], k["takeoff"], k["t_fly"]
-    arm_times = [0, t_h, t_b - 0.1 * (t_b - t_h), t_to + 0.35 * t_fly,
-                 k["touch"] - 0.1 * t_fly, k["absorbed"] + 0.3 * (k["stand"] - k["absorbed"]),
-                 k["stand"] + 0.4 * (k["period"] - k["stand"]), k["period"]]
-    arm = np.radians([0, 0, -40, 110, 60, 35, 0, 0])
+    k = procedural._jump_timeline(procedural.resolve_params("jump", {}))
+    _, _, arm_times, arm = procedural._jump_swing_keys(k, 1.0, 0.0)
     np.testing.assert_array_equal(
         procedural._limited_keys(arm_times, arm, procedural.JUMP_ARM_ANGULAR_ACCELERATION_MAX,
                                  procedural.JUMP_ARM_ANGULAR_SPEED_MAX), arm)

@@ -171,8 +171,9 @@ def _rz(a):
 _MIRROR_SIGN = np.array([[1.0, -1.0, -1.0], [-1.0, 1.0, 1.0], [-1.0, 1.0, 1.0]])
 
 
-# The peak acceleration of a smootherstep over a unit step in a unit time: 10 / sqrt(3).
+# The peak acceleration and speed of a smootherstep over a unit step in a unit time.
 _SMOOTHERSTEP_PEAK = 10.0 / math.sqrt(3.0)
+_SMOOTHERSTEP_PEAK_SPEED = 15.0 / 8.0
 
 
 def _smootherstep(x: np.ndarray | float) -> np.ndarray:
@@ -1077,14 +1078,14 @@ def _jump_timeline(p: dict[str, float]) -> dict[str, float]:
     # durations, which it lengthens in turn: a few rounds settle it.
     dist = p["distance"]
     t_push, t_land = _ground_time(z_to - k["z_low"], v0), _ground_time(z_to - k["z_land"], v0)
+    vh = dist / (t_fly + 0.5 * (t_push + t_land))
     for _ in range(4):
-        vh = dist / (t_fly + 0.5 * (t_push + t_land))
         t_push = _bounded_ground_time(z_to - k["z_low"], v0, vh, JUMP_PUSH_FORCE_MAX)
         t_land = _bounded_ground_time(z_to - k["z_land"], v0, vh, JUMP_LANDING_FORCE_MAX)
-    k["t_push"], k["t_land"] = t_push, t_land
+        vh = dist / (t_fly + 0.5 * (t_push + t_land))
+    k["t_push"], k["t_land"], k["vh"] = t_push, t_land, vh
     k["z_low"] = z_to - _ground_depth(t_push, v0)
     k["z_land"] = z_to - _ground_depth(t_land, v0)
-    k["vh"] = dist / (t_fly + 0.5 * (t_push + t_land))
     k["hold"] = 0.3 / tempo
     k["bottom"] = k["hold"] + 0.5 / tempo
     k["takeoff"] = k["bottom"] + k["t_push"]
@@ -1126,13 +1127,15 @@ def _limited_keys(
     times, values: np.ndarray, curvature: float, speed: float = math.inf
 ) -> np.ndarray:
     """Key values for _keys whose every segment accelerates by at most `curvature` and moves at
-    most at `speed` (a smootherstep's peaks are _SMOOTHERSTEP_PEAK |dv| / dt^2 and 1.875 |dv| /
-    dt): a key that its neighbours' spacing would make too abrupt to reach moves toward them
-    instead, so the swing falls short of it. The first and last keys (the rest pose) stay.
-    Alternate sweeps clamp each key to its neighbours' reach until none moves; a key only ever
-    moves toward its neighbours, so this ends, and keys within reach are kept as they are."""
+    most at `speed` (a smootherstep's peaks are _SMOOTHERSTEP_PEAK |dv| / dt^2 and
+    _SMOOTHERSTEP_PEAK_SPEED |dv| / dt): a key that its neighbours' spacing would make too
+    abrupt to reach moves toward them instead, so the swing falls short of it. The first and
+    last keys (the rest pose) stay. Alternate sweeps clamp each key to its neighbours' reach
+    until none moves; a key only ever moves toward its neighbours, so this ends, and keys
+    within reach are kept as they are."""
     dt = np.diff(np.asarray(times, dtype=np.float64))
-    reach = np.minimum(curvature * dt**2 / _SMOOTHERSTEP_PEAK, speed * dt / 1.875)
+    reach = np.minimum(curvature * dt**2 / _SMOOTHERSTEP_PEAK,
+                       speed * dt / _SMOOTHERSTEP_PEAK_SPEED)
     out = np.array(values, dtype=np.float64)
     last = len(out) - 1
     for _ in range(4 * len(out)):
@@ -1146,6 +1149,32 @@ def _limited_keys(
     return out
 
 
+def _jump_swing_keys(
+    k: dict[str, float], amp: float, dist: float
+) -> tuple[list[float], np.ndarray, list[float], np.ndarray]:
+    """The trunk's lean and the arms' swing as keys (cycle times, radians), before
+    _limited_keys: lean and hips back in the crouches; the arms swing back, then up through the
+    take-off."""
+    t_h, t_b, t_to, t_td = k["hold"], k["bottom"], k["takeoff"], k["touch"]
+    t_ab, t_st, period, t_fly = k["absorbed"], k["stand"], k["period"], k["t_fly"]
+    t_down = t_b - t_h
+    lean_max = (40 * (0.6 + 0.4 * amp) + 12 * dist) * _DEG
+    lean_times = [0, t_h, t_b - 0.2 * t_down, t_to, t_td, t_ab, t_st, period]
+    lean = lean_max * np.array([0, 0, 1, 0.25, 0.15, 0.8, 0, 0])
+    arm_times = [
+        0,
+        t_h,
+        t_b - 0.1 * t_down,
+        t_to + 0.35 * t_fly,
+        t_td - 0.1 * t_fly,
+        t_ab + 0.3 * (t_st - t_ab),
+        t_st + 0.4 * (period - t_st),
+        period,
+    ]
+    arm = amp * _DEG * np.array([0, 0, -40, 110, 60, 35, 0, 0])
+    return lean_times, lean, arm_times, arm
+
+
 def _build_jump(t: np.ndarray, fps: float, p: dict[str, float]) -> _Built:
     k = _jump_timeline(p)
     n, amp = len(t), p["amplitude"]
@@ -1153,8 +1182,7 @@ def _build_jump(t: np.ndarray, fps: float, p: dict[str, float]) -> _Built:
     cycle = np.floor(t / period)
     tc = t - cycle * period
     z, zv = _jump_heights(tc, k)
-    t_h, t_b, t_to, t_td = k["hold"], k["bottom"], k["takeoff"], k["touch"]
-    t_ab, t_st = k["absorbed"], k["stand"]
+    t_b, t_to, t_td, t_ab = k["bottom"], k["takeoff"], k["touch"], k["absorbed"]
 
     # Forward travel: speed up during the push, constant in the air, brake while landing.
     dist, vh = p["distance"], k["vh"]
@@ -1170,29 +1198,13 @@ def _build_jump(t: np.ndarray, fps: float, p: dict[str, float]) -> _Built:
     y -= dist * cycle
     feet_y = -dist * (cycle + _smootherstep((tc - t_to) / (t_td - t_to)))
 
-    # Lean and hips back in the crouches; the arms swing back, then up through the take-off.
-    scale = 0.6 + 0.4 * amp
-    t_fly, t_down = k["t_fly"], t_b - t_h
-    lean_max = (40 * scale + 12 * dist) * _DEG
-    lean_times = [0, t_h, t_b - 0.2 * t_down, t_to, t_td, t_ab, t_st, period]
-    lean_values = _limited_keys(lean_times,
-                                lean_max * np.array([0, 0, 1, 0.25, 0.15, 0.8, 0, 0]),
-                                JUMP_TRUNK_ANGULAR_ACCELERATION_MAX)
-    lean = _keys(tc, lean_times, lean_values)
-    back = 0.08 * scale * lean / lean_max
-    arm_times = [
-        0,
-        t_h,
-        t_b - 0.1 * t_down,
-        t_to + 0.35 * t_fly,
-        t_td - 0.1 * t_fly,
-        t_ab + 0.3 * (t_st - t_ab),
-        t_st + 0.4 * (period - t_st),
-        period,
-    ]
-    arm_values = _limited_keys(arm_times, amp * _DEG * np.array([0, 0, -40, 110, 60, 35, 0, 0]),
-                               JUMP_ARM_ANGULAR_ACCELERATION_MAX, JUMP_ARM_ANGULAR_SPEED_MAX)
-    arm = _keys(tc, arm_times, arm_values)
+    lean_times, lean_keys, arm_times, arm_keys = _jump_swing_keys(k, amp, dist)
+    lean = _keys(tc, lean_times, _limited_keys(lean_times, lean_keys,
+                                               JUMP_TRUNK_ANGULAR_ACCELERATION_MAX))
+    back = 0.08 * (0.6 + 0.4 * amp) * lean / lean_keys.max()
+    arm = _keys(tc, arm_times, _limited_keys(arm_times, arm_keys,
+                                             JUMP_ARM_ANGULAR_ACCELERATION_MAX,
+                                             JUMP_ARM_ANGULAR_SPEED_MAX))
     soft_abs = np.sqrt(arm * arm + (10 * _DEG) ** 2) - 10 * _DEG  # no kink at zero
     arms = {
         "fwd": ARM_FORWARD + arm,
