@@ -2275,3 +2275,93 @@ def test_xpbd_sweeps_in_wavefront_order_give_the_model_orders_result_bit_for_bit
         # kernel takes the step's reciprocal once (while each element computed it, the two
         # kinds of kernel rounded differently: the tube's paths were 0.9 mm apart at frame 1).
         assert np.array_equal(by_path[0], by_path[1]), name
+
+
+def _coulomb_block_drift(theta: float, mu: float, amplitude: float, omega: float,
+                         seconds: float, dt: float = 2e-5) -> float:
+    """How far a rigid block slides down a plane tilted by `theta` whose surface moves along
+    its slope by amplitude (1 - cos(omega t)), with Coulomb friction mu: integrated in the
+    plane's frame (stick while the drive is within mu g cos theta, else slide against it)."""
+    u = s = 0.0
+    grip = mu * G * np.cos(theta)
+    for t in np.arange(0.0, seconds, dt):
+        drive = -amplitude * omega**2 * np.cos(omega * t) - G * np.sin(theta)
+        if u == 0.0 and abs(drive) <= grip:
+            continue
+        slide = u + (drive - np.sign(u if u != 0.0 else drive) * grip) * dt
+        u = 0.0 if u != 0.0 and np.sign(slide) != np.sign(u) else slide
+        s += u * dt
+    return s
+
+
+@pytest.mark.parametrize("peak, block_drift, tolerance", [
+    # Below the grip's margin (mu g cos - g sin = 2.18 m/s^2) a block does not move. Along the
+    # frames' chords the body's velocity jumped at every frame, friction let the sheet slip at
+    # each jump, and it crept 10.8 mm down in 2 s (the block on the chords: 10.5).
+    (2.0, 0.0, 0.0015),
+    # Past it the block slides down in steps, 23.6 mm in 2 s; on the chords the sheet went
+    # 40.3 (the block on the chords: 39.8).
+    (3.0, 0.0236, 0.003),
+])
+def test_cloth_on_a_shaken_slope_slides_as_a_coulomb_block_does(peak, block_drift, tolerance):
+    """A cotton sheet resting on a 20-degree slope (friction 0.6, above tan 20 deg = 0.36)
+    that moves along itself, 2 Hz, at 30 fps: the body's path within each frame must carry its
+    velocity on smoothly (kernels.interpolate_body_one), or friction sees a jolt at every frame.
+    The sheet's drift down the slope over 2 s against the rigid block's, worked out above."""
+    import trimesh
+
+    theta, mu, f, fps = np.radians(20.0), 0.6, 2.0, 30.0
+    omega = 2 * np.pi * f
+    amplitude = peak / omega**2
+    assert _coulomb_block_drift(theta, mu, amplitude, omega, 2.0) == pytest.approx(
+        -block_drift, abs=5e-4)
+    rot = np.array([[1, 0, 0], [0, np.cos(theta), -np.sin(theta)],
+                    [0, np.sin(theta), np.cos(theta)]])
+    slab = trimesh.creation.box(extents=(3.0, 3.0, 0.1))
+    slab_v = (np.asarray(slab.vertices) - [0.0, 0.0, 0.05]) @ rot.T  # its top at the origin
+    uphill = rot @ [0.0, 1.0, 0.0]
+    t = np.arange(61) / fps
+    frames = slab_v[None] + (amplitude * (1 - np.cos(omega * t)))[:, None, None] * uphill
+    track = ColliderTrack(frames, np.asarray(slab.faces, np.int32), np.ones(len(slab.faces), bool),
+                          fps)
+    sheet = grid_sheet(20, 0.3, 0.0045)  # resting at cotton's 4 mm thickness
+    sheet.vertices = sheet.vertices @ rot.T
+    cotton = replace(FABRICS["cotton"], friction=mu, air_drag=0.0)
+    sheet.fabric = "still_cotton"
+    result = simulate([sheet], track, SimOptions(settle_seconds=0.0,
+                                                 fabrics={"still_cotton": cotton}))
+    x = result.vertices["sheet"]
+    drift = (x[-1].mean(axis=0) - x[0].mean(axis=0) - (frames[-1, 0] - frames[0, 0])) @ uphill
+    assert -drift == pytest.approx(block_drift, abs=tolerance)
+
+
+def test_body_path_within_a_frame_is_exact_for_uniform_acceleration():
+    """A collider accelerating uniformly (a parabola): the frames' central differences are its
+    velocities, so the Hermite path through them is the parabola itself at every substep, where
+    the chords were off by up to a g dt^2 / 8 (1.4 mm at 10 m/s^2 and 30 fps). A one-frame jump
+    of 0.5 m moves the still frames beside it by at most TANGENT_TRAVEL_MAX times their own
+    travel (none here)."""
+    from datagen.sim import kernels as K
+    from datagen.sim.collider import frame_tangents
+
+    fps, acc = 30.0, np.array([3.0, -10.0, 4.0])
+    base = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    t = np.arange(6) / fps
+    frames = base[None] + (0.5 * t**2)[:, None, None] * acc + t[:, None, None] * [0.2, 0, 0]
+    collider = BodyCollider(np.array([[0, 1, 2]]), np.ones(1, bool), 3)
+    k = 2
+    collider.set_frames(frames[k], frames[k + 1],
+                        np.stack([frame_tangents(frames, k), frame_tangents(frames, k + 1)]))
+    for s0, s1 in [(0.0, 0.25), (0.4, 0.7), (0.75, 1.0)]:
+        K.interpolate_body(collider.b0, collider.b1, collider.n0, collider.n1, collider.used,
+                           s0, s1, collider.bs0, collider.bs1, collider.ns1, True)
+        for s, got in [(s0, collider.bs0), (s1, collider.bs1)]:
+            tt = (k + s) / fps
+            want = base + 0.5 * tt**2 * acc + tt * np.array([0.2, 0, 0])
+            assert np.abs(got.to_numpy()[:3] - want).max() < 2e-6, (s, got.to_numpy()[:3], want)
+    jump = np.repeat(base[None], 6, axis=0)
+    jump[3:] += [0.5, 0.0, 0.0]  # frames 0-2 still, 3-5 still, 0.5 m apart
+    assert np.abs(frame_tangents(jump, 2)).max() == 0.0
+    assert np.abs(frame_tangents(jump, 3)).max() == 0.0
+    # Smooth motion keeps the central difference.
+    assert np.allclose(frame_tangents(frames, 3), 0.5 * (frames[4] - frames[2]))

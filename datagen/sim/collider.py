@@ -52,6 +52,34 @@ def closed_surface(faces: np.ndarray) -> bool:
     return bool(np.all(forward[1:] != forward[:-1]) and np.array_equal(forward, backward))
 
 
+# A frame tangent is at most this many times the shorter of the two frames' travels beside it
+# (frame_tangents): a Catmull-Rom tangent next to a one-frame jump of the root (a teleport)
+# would carry half the jump into the still frame before it, a bulge of up to 15 % of the jump.
+# Where motion is smooth the two travels and the tangent are all alike, and the bound is idle.
+TANGENT_TRAVEL_MAX = 3.0
+
+
+def frame_tangents(frames: np.ndarray, k: int) -> np.ndarray:
+    """(V, 3) each vertex's velocity at frame k of `frames` (F, V, 3), in metres per frame:
+    the central difference (Catmull-Rom), one-sided at the track's ends, its length at most
+    TANGENT_TRAVEL_MAX times the shorter travel of the frames either side. Consecutive frames'
+    Hermite paths share it at their common frame, so the body's velocity is continuous."""
+    n = len(frames)
+    here = np.asarray(frames[k], dtype=np.float64)
+    before = here - frames[k - 1] if k > 0 else None
+    after = frames[k + 1] - here if k + 1 < n else None
+    if before is None and after is None:
+        return np.zeros_like(here)
+    if before is None or after is None:
+        return np.array(after if before is None else before, dtype=np.float64)
+    m = 0.5 * (before + after)
+    bound = TANGENT_TRAVEL_MAX * np.sqrt(np.minimum(np.einsum("ij,ij->i", before, before),
+                                                    np.einsum("ij,ij->i", after, after)))
+    length = np.sqrt(np.einsum("ij,ij->i", m, m))
+    scale = np.where(length > bound, bound / np.maximum(length, 1e-300), 1.0)
+    return m * scale[:, None]
+
+
 # Grid numbers, unique across the colliders of a process (a retry solver is handed the guards
 # that another solver's collider proved), and exact as float32 (2**24 grids before they repeat).
 _GRID_TAGS = (1 + k % (2**24 - 1) for k in itertools.count())
@@ -151,7 +179,9 @@ class BodyCollider:
         self.n0 = ti.ndarray(VEC3, n_vertices)
         self.n1 = ti.ndarray(VEC3, n_vertices)
         # Scratch: the body interpolated to a substep's start and end (fused solver kernels).
-        self.bs0 = ti.ndarray(VEC3, n_vertices)
+        # bs0 also keeps the frame's path tangents after the vertices (set_frames), which the
+        # interpolation reads (kernels.interpolate_body_one).
+        self.bs0 = ti.ndarray(VEC3, 3 * n_vertices)
         self.bs1 = ti.ndarray(VEC3, n_vertices)
         self.ns1 = ti.ndarray(VEC3, n_vertices)
         self.relative_travel = np.zeros(n_vertices, NP_REAL)  # from the mean motion, per frame
@@ -213,19 +243,30 @@ class BodyCollider:
     def tbox(self) -> ti.Ndarray:
         return self.swept.tbox
 
-    def set_frames(self, v0: np.ndarray, v1: np.ndarray) -> None:
-        """Body positions at the start and end of the coming frame (interpolated in between).
-        Consecutive frames share a pose: when v0 is the previous call's v1, its arrays are
-        reused instead of uploaded again."""
+    def set_frames(self, v0: np.ndarray, v1: np.ndarray,
+                   tangents: np.ndarray | None = None) -> None:
+        """Body positions at the start and end of the coming frame, and the path between them:
+        `tangents` (2, V, 3), each vertex's velocity at the frame's start and end in metres per
+        frame (frame_tangents), along which the contact kernels take the body within the frame
+        (a cubic Hermite curve: kernels.interpolate_body_one); None for the chord, v1 - v0 at
+        both ends (the straight line). Consecutive frames share a pose: when v0 is the previous
+        call's v1, its arrays are reused instead of uploaded again."""
         v0 = np.asarray(v0, dtype=NP_REAL)
         v1 = np.asarray(v1, dtype=NP_REAL)
         prev = getattr(self, "v1_np", None)
+        still = tangents is None or not np.any(tangents)
         if (
             self._at_rest
+            and still
             and np.array_equal(prev, v0)
             and np.array_equal(v0, v1)
         ):
             return  # a collider at rest: the arrays and the grid of the last frame still hold
+        if self.normals:  # a body (a layer collider's path is never interpolated)
+            if tangents is None:
+                tangents = np.broadcast_to(v1 - v0, (2, *v0.shape))
+            path = np.ascontiguousarray(tangents, dtype=NP_REAL).reshape(-1, 3)
+            K.copy_in_at(path, self.bs0, len(v0), backend.serial())
         if prev is not None and prev.shape == v0.shape and np.array_equal(prev, v0):
             self.b0, self.b1 = self.b1, self.b0
             self.n0, self.n1 = self.n1, self.n0

@@ -902,6 +902,14 @@ def copy_in(src: V3, dst: V3, serialize: ti.template()):
 
 
 @ti.kernel
+def copy_in_at(src: V3, dst: V3, offset: ti.i32, serialize: ti.template()):
+    """dst[offset:offset + len(src)] = src, for vec3 arrays."""
+    ti.loop_config(serialize=serialize)
+    for i in range(src.shape[0]):
+        dst[offset + i] = src[i]
+
+
+@ti.kernel
 def copy_tracking(tri: I1, guard: V8, tri_out: I1, guard_out: V8, serialize: ti.template()):
     """tri_out, guard_out = tri, guard: a frame's snapshot of the collision tracking (for a
     retry) and its restore, in one launch."""
@@ -1902,11 +1910,28 @@ def limit_after_contact_listed(
 
 
 @ti.func
+def hermite3(a: vec3, b: vec3, ma: vec3, mb: vec3, s: REAL) -> vec3:
+    """The cubic Hermite curve from a to b with end tangents ma, mb (per frame) at fraction s,
+    written as the chord's lerp plus the tangents' departure from the chord: where ma = mb =
+    b - a it is the lerp, and at rest (all equal, tangents zero) exactly a."""
+    d = b - a
+    return lerp3(a, b, s) + (s * (1.0 - s)) * ((1.0 - s) * (ma - d) - s * (mb - d))
+
+
+@ti.func
 def interpolate_body_one(j: ti.i32, b0: V3, b1: V3, n0: V3, n1: V3, s0: REAL, s1: REAL,
                          bs0: V3, bs1: V3, ns1: V3):
-    """Body vertex j at a substep's start and end, and its normal at the end."""
-    bs0[j] = lerp3(b0[j], b1[j], s0)
-    bs1[j] = lerp3(b0[j], b1[j], s1)
+    """Body vertex j at a substep's start and end, and its normal at the end. The positions
+    follow the frame's cubic Hermite path (Collider.set_frames keeps the frame's end tangents
+    in bs0 after the body's vertices: bs0[n + j] at its start, bs0[2n + j] at its end), so the
+    body's velocity is continuous across frames: along the frames' chords it jumped at each
+    one, and cloth held by friction slipped at every jump (docs/simulator.md, "The body's path
+    within a frame"). Normals stay linear: they only give directions."""
+    nb = b0.shape[0]
+    ma = bs0[nb + j]
+    mb = bs0[2 * nb + j]
+    bs0[j] = hermite3(b0[j], b1[j], ma, mb, s0)
+    bs1[j] = hermite3(b0[j], b1[j], ma, mb, s1)
     ns1[j] = lerp3(n0[j], n1[j], s1)
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from datagen.errors import InputError, RejectedSequence, SlidOffShoulders
 from datagen.qa import STRAIN_SHARE_MAX, Breach
 from datagen.sim import backend
-from datagen.sim.collider import BodyCollider
+from datagen.sim.collider import BodyCollider, frame_tangents
 from datagen.sim.effects import Effects, SceneContent, resolve_effects
 from datagen.sim.fabrics import Fabric, get_fabric
 from datagen.sim.fold_fields import FoldFields, JoinedFoldFields
@@ -498,6 +498,7 @@ class _Simulation:
             self.collider = None
         self.pins = None
         self._pins_at: dict[int, np.ndarray] = {}  # _pin_targets
+        self._tangents_at: dict[int, np.ndarray] = {}  # _tangents
         self.fixed_pins = None
         if self.effects.pins and len(self.model.pinned):
             if body is not None:
@@ -554,11 +555,23 @@ class _Simulation:
         if self.collider is None:
             return
         b = self.body.vertices
-        self.collider.set_frames(b[f0], b[f1])
+        # Along the frames' Hermite path; the settle (f0 = f1) holds the body still.
+        tangents = np.stack([self._tangents(f0), self._tangents(f1)]) if f1 == f0 + 1 else None
+        self.collider.set_frames(b[f0], b[f1], tangents)
         fields = self.body.fold_fields
         self.collider.set_fold(fields.blob(f0, f1) if fields is not None else None)
         if self.pins is not None:
             solver.set_pin_targets(self._pin_targets(f0), self._pin_targets(f1))
+
+    def _tangents(self, frame: int) -> np.ndarray:
+        """The body's path tangents at `frame` (collider.frame_tangents), kept for the last
+        two frames asked for, as _pin_targets keeps its targets."""
+        known = self._tangents_at.get(frame)
+        if known is None:
+            known = frame_tangents(self.body.vertices, frame)
+            self._tangents_at = {f: t for f, t in self._tangents_at.items() if f >= frame - 1}
+            self._tangents_at[frame] = known
+        return known
 
     def _pin_targets(self, frame: int) -> np.ndarray:
         """The pins' targets on the body at `frame`, kept for the last two frames asked for

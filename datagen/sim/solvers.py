@@ -517,6 +517,11 @@ class ClothSolver:
         self._collide_body(collider, s0, s1, h, self.effects.friction)
 
     def _collide_body(self, collider, s0: float, s1: float, h: float, friction: bool) -> None:
+        """Contact with the body at the substep's start and end on the frame's path
+        (kernels.interpolate_body), as every solver takes it."""
+        self._run("body_collision", K.interpolate_body, collider.b0, collider.b1, collider.n0,
+                  collider.n1, collider.used, s0, s1, collider.bs0, collider.bs1, collider.ns1,
+                  backend.serial())
         self._run(
             "body_collision",
             K.collide_body,
@@ -526,10 +531,10 @@ class ClothSolver:
             self.tri,
             collider.faces,
             collider.fadj,
-            collider.b0,
-            collider.b1,
-            collider.n0,
-            collider.n1,
+            collider.bs0,
+            collider.bs1,
+            collider.ns1,
+            collider.ns1,
             s0,
             s1,
             self.thickness,
@@ -540,7 +545,7 @@ class ClothSolver:
             self.contact_v,
             h,
             friction,
-            False,
+            True,
         )
 
     def search(self, collider, s: float) -> None:
@@ -729,8 +734,9 @@ class XPBDSolver(ClothSolver):
                 break
         self.costs["strain_limit"] += time.perf_counter() - t
         c = collider if collider is not None else self._placeholder_collider()
+        # The body at this substep, as _collide interpolated it (bs0, bs1: fractions 0 and 1).
         self._run("body_collision", PK.collide_moved, self.x, self.xp, self.w, self.tri,
-                  c.faces, c.fadj, c.b0, c.b1, c.n0, c.n1, s0, s1, self.thickness,
+                  c.faces, c.fadj, c.bs0, c.bs1, c.ns1, c.ns1, 0.0, 1.0, self.thickness,
                   self.friction, self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n,
                   self.contact_v, h, self.limit_moved, collider is not None)
 
