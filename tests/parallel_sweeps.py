@@ -10,7 +10,8 @@ Usage: python tests/parallel_sweeps.py MODE OUT.npz, MODE one of
             passes, may round differently on some CPUs: the coarse tube 0.2 mm apart at frame
             12 on one AMD EPYC)
   threads   coloured sweeps on two threads (DATAGEN_TI_THREADS=2 set by the caller), over the
-            first frames of each scene only (THREADS_FRAMES: a shorter run's frames are the
+            first frames of each scene only (THREADS_FRAMES: a shorter run's frames, but for
+            its last on a collider track, whose path ends on a one-sided tangent, are the
             longer run's first ones, bit for bit, so the race check needs no full run; the
             physics is asserted on the coloured run, which must equal it), and
             test_sim_batch's three scenes batched, against each simulated alone where the

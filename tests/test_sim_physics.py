@@ -1227,8 +1227,12 @@ def test_coloured_sweeps_on_two_threads_equal_one_thread_and_stay_physical(tmp_p
     assert runs["threads"]["steps"].tolist() == [40, 8]
     # The two-thread run repeats each scene's first frames (parallel_sweeps.THREADS_FRAMES):
     # the physics below is asserted on the one-thread coloured run, which it must equal.
+    # On a collider track the shorter run's last frame is not the longer run's: the body's path
+    # through it ends on a one-sided tangent where the shorter track ends (frame_tangents).
     for key in ("sheet", "tube", "layers", "explicit"):
         prefix = runs["threads"][key]
+        if key in ("tube", "layers"):
+            prefix = prefix[:-1]
         assert 0 < len(prefix) <= len(runs["coloured"][key]), key
         assert np.array_equal(runs["coloured"][key][: len(prefix)], prefix), key
     assert len(runs["threads"]["sheet"]) < len(runs["coloured"]["sheet"])

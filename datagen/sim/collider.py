@@ -53,8 +53,9 @@ def closed_surface(faces: np.ndarray) -> bool:
 
 
 # A frame tangent is at most this many times the shorter of the two frames' travels beside it
-# (frame_tangents): a Catmull-Rom tangent next to a one-frame jump of the root (a teleport)
-# would carry half the jump into the still frame before it, a bulge of up to 15 % of the jump.
+# (frame_tangents): a Catmull-Rom tangent next to a one-frame jump of a track (a teleport)
+# would carry half the jump into the still frame before it: a bulge of 7 % of the jump (4/27
+# of the half) ahead of the body and back.
 # Where motion is smooth the two travels and the tangent are all alike, and the bound is idle.
 TANGENT_TRAVEL_MAX = 3.0
 

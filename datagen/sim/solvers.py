@@ -734,7 +734,9 @@ class XPBDSolver(ClothSolver):
                 break
         self.costs["strain_limit"] += time.perf_counter() - t
         c = collider if collider is not None else self._placeholder_collider()
-        # The body at this substep, as _collide interpolated it (bs0, bs1: fractions 0 and 1).
+        if collider is not None:  # the body at this substep (fractions 0 and 1 of bs0, bs1)
+            self._run("body_collision", K.interpolate_body, c.b0, c.b1, c.n0, c.n1, c.used, s0,
+                      s1, c.bs0, c.bs1, c.ns1, False)
         self._run("body_collision", PK.collide_moved, self.x, self.xp, self.w, self.tri,
                   c.faces, c.fadj, c.bs0, c.bs1, c.ns1, c.ns1, 0.0, 1.0, self.thickness,
                   self.friction, self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n,
