@@ -1000,6 +1000,15 @@ def _ground_force(duration: float, v: float, vh: float) -> float:
     return float(np.hypot(up, forward).max()) / GRAVITY
 
 
+def _bisect(holds: Callable[[float], bool], lo: float, hi: float) -> tuple[float, float]:
+    """(lo, hi) halved 40 times around where `holds` changes: it holds at the lo end (or at
+    the bound given) and not at the hi end."""
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if holds(mid) else (lo, mid)
+    return lo, hi
+
+
 def _bounded_ground_time(dist: float, v: float, vh: float, force: float) -> float:
     """The duration of a ground phase covering at least `dist` whose peak force stays within
     `force` body weights: _ground_time's, or longer (and deeper) where that one is too stiff."""
@@ -1009,10 +1018,8 @@ def _bounded_ground_time(dist: float, v: float, vh: float, force: float) -> floa
     hi = 2.0 * lo
     while _ground_force(hi, v, vh) > force:
         hi *= 2.0
-    for _ in range(40):  # the force falls as the phase lengthens: bisect
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if _ground_force(mid, v, vh) > force else (lo, mid)
-    return hi
+    # The force falls as the phase lengthens.
+    return _bisect(lambda t: _ground_force(t, v, vh) > force, lo, hi)[1]
 
 
 def _jump_flight(height: float, ext: float, tuck: float) -> tuple[float, float, float, float]:
@@ -1042,17 +1049,10 @@ def _air_legs(height: float) -> tuple[float, float]:
         return min(15.0 * reach - tuck, _TUCK_ACCELERATION * reach - (ext + tuck))
 
     ext = min(0.065, 0.015 + 0.25 * height)
-    if room(ext, 0.0) < 0.0:
-        lo, hi = 0.0, ext
-        for _ in range(40):  # the room shrinks as the extension grows: bisect
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if room(mid, 0.0) >= 0.0 else (lo, mid)
-        return lo, 0.0
-    lo, hi = 0.0, 0.45 * height
-    for _ in range(40):  # the affordable tuck shrinks as the tuck deepens: bisect
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if room(ext, mid) >= 0.0 else (lo, mid)
-    return ext, lo
+    if room(ext, 0.0) < 0.0:  # the room shrinks as the extension grows
+        return _bisect(lambda e: room(e, 0.0) >= 0.0, 0.0, ext)[0], 0.0
+    # The affordable tuck shrinks as the tuck deepens.
+    return ext, _bisect(lambda tuck: room(ext, tuck) >= 0.0, 0.0, 0.45 * height)[0]
 
 
 def _jump_timeline(p: dict[str, float]) -> dict[str, float]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
@@ -458,6 +459,19 @@ def body_start_transform(body: BodySequence) -> tuple[np.ndarray, np.ndarray]:
     return rot, body.trans[0] - rot @ body.rest.joints[0]
 
 
+def _per_frame(known: dict[int, np.ndarray], frame: int,
+               compute: Callable[[], np.ndarray]) -> np.ndarray:
+    """compute() for `frame`, kept in `known` for the last two frames asked for: a frame's end
+    is the next frame's start, and a retried frame asks again."""
+    value = known.get(frame)
+    if value is None:
+        value = compute()
+        for old in [f for f in known if f < frame - 1]:
+            del known[old]
+        known[frame] = value
+    return value
+
+
 class _Simulation:
     def __init__(self, garments: list[Garment], body: ColliderTrack | None, options: SimOptions,
                  start: tuple[np.ndarray, np.ndarray] | None = None,
@@ -564,24 +578,14 @@ class _Simulation:
             solver.set_pin_targets(self._pin_targets(f0), self._pin_targets(f1))
 
     def _tangents(self, frame: int) -> np.ndarray:
-        """The body's path tangents at `frame` (collider.frame_tangents), kept for the last
-        two frames asked for, as _pin_targets keeps its targets."""
-        known = self._tangents_at.get(frame)
-        if known is None:
-            known = frame_tangents(self.body.vertices, frame)
-            self._tangents_at = {f: t for f, t in self._tangents_at.items() if f >= frame - 1}
-            self._tangents_at[frame] = known
-        return known
+        """The body's path tangents at `frame` (collider.frame_tangents)."""
+        return _per_frame(self._tangents_at, frame,
+                          lambda: frame_tangents(self.body.vertices, frame))
 
     def _pin_targets(self, frame: int) -> np.ndarray:
-        """The pins' targets on the body at `frame`, kept for the last two frames asked for
-        (a frame's end is the next frame's start, and a retried frame asks again)."""
-        known = self._pins_at.get(frame)
-        if known is None:
-            known = self.pins.targets(self.body.vertices[frame], self.faces)
-            self._pins_at = {f: t for f, t in self._pins_at.items() if f >= frame - 1}
-            self._pins_at[frame] = known
-        return known
+        """The pins' targets on the body at `frame`."""
+        return _per_frame(self._pins_at, frame,
+                          lambda: self.pins.targets(self.body.vertices[frame], self.faces))
 
     def _body_speed(self, vertices: slice) -> float:
         """The speed of the body's fastest vertex over the current frame (m/s; 0 without a

@@ -486,6 +486,12 @@ class ClothSolver:
         self.costs[effect] += time.perf_counter() - t
         self.launches[effect] += 1
 
+    def _interpolate_body(self, c, s0: float, s1: float) -> None:
+        """The body at fractions s0 and s1 of the frame, on its path (kernels.interpolate_body),
+        into c.bs0, c.bs1 and its normals at s1 into c.ns1: what every contact call reads."""
+        self._run("body_collision", K.interpolate_body, c.b0, c.b1, c.n0, c.n1, c.used, s0, s1,
+                  c.bs0, c.bs1, c.ns1, not self.parallel)
+
     # -- shared parts of a substep -----------------------------------------------------------
     def _pins(self, s1: float) -> None:
         if self.n_pins:
@@ -519,9 +525,7 @@ class ClothSolver:
     def _collide_body(self, collider, s0: float, s1: float, h: float, friction: bool) -> None:
         """Contact with the body at the substep's start and end on the frame's path
         (kernels.interpolate_body), as every solver takes it."""
-        self._run("body_collision", K.interpolate_body, collider.b0, collider.b1, collider.n0,
-                  collider.n1, collider.used, s0, s1, collider.bs0, collider.bs1, collider.ns1,
-                  backend.serial())
+        self._interpolate_body(collider, s0, s1)
         self._run(
             "body_collision",
             K.collide_body,
@@ -678,8 +682,7 @@ class XPBDSolver(ClothSolver):
         if not self.gauss_seidel:
             return super()._search_and_collide(collider, s0, s1, h)
         c = collider
-        self._run("body_collision", K.interpolate_body, c.b0, c.b1, c.n0, c.n1, c.used, s0, s1,
-                  c.bs0, c.bs1, c.ns1, True)
+        self._interpolate_body(c, s0, s1)
         self._run("body_collision", K.nearest_untracked, self.x, self.w, c.bs1, c.faces,
                   c.origin, c.inv_cell, c.dims, c.starts, c.items, c.cell, self.tri,
                   self.guard, self.odo, c.max_speed, c.grid_tag, s1, c.shift, c.tbox,
@@ -711,8 +714,7 @@ class XPBDSolver(ClothSolver):
         self.costs["strain_limit"] += time.perf_counter() - t
         c = collider if body else self._placeholder_collider()
         if body:  # the body at this substep, as the fused kernel takes it (see _collide)
-            self._run("body_collision", K.interpolate_body, c.b0, c.b1, c.n0, c.n1, c.used, s0,
-                      s1, c.bs0, c.bs1, c.ns1, True)
+            self._interpolate_body(c, s0, s1)
         self._run("body_collision", K.collide_listed, self.x, self.xp, self.w, self.tri,
                   c.faces, c.fadj, c.bs0, c.bs1, c.ns1, c.ns1, s0, s1, self.thickness,
                   self.friction, self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n,
@@ -735,8 +737,7 @@ class XPBDSolver(ClothSolver):
         self.costs["strain_limit"] += time.perf_counter() - t
         c = collider if collider is not None else self._placeholder_collider()
         if collider is not None:  # the body at this substep (fractions 0 and 1 of bs0, bs1)
-            self._run("body_collision", K.interpolate_body, c.b0, c.b1, c.n0, c.n1, c.used, s0,
-                      s1, c.bs0, c.bs1, c.ns1, False)
+            self._interpolate_body(c, s0, s1)
         self._run("body_collision", PK.collide_moved, self.x, self.xp, self.w, self.tri,
                   c.faces, c.fadj, c.bs0, c.bs1, c.ns1, c.ns1, 0.0, 1.0, self.thickness,
                   self.friction, self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n,
