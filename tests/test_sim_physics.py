@@ -2339,42 +2339,6 @@ def test_cloth_on_a_shaken_slope_slides_as_a_coulomb_block_does(peak, block_drif
     assert -drift == pytest.approx(block_drift, abs=tolerance)
 
 
-def _belt_hold_limit(mu: float, hanging: float, radius: float) -> float:
-    """The longest tail a belt hanging `hanging` metres down one side of a fixed horizontal
-    drum (half a turn of wrap) can hold on the other side, with Coulomb friction mu and the
-    belt's own weight on the drum: along the wrap (angle phi from the short side) the tension
-    grows as dT/dphi = mu T + w R (cos phi + mu sin phi) at the verge of slipping, from
-    T(0) = w * hanging (w: weight per length). Without the wrap's weight this is
-    Euler-Eytelwein's hanging * e^(mu pi)."""
-    from scipy.integrate import quad
-
-    grown = quad(lambda s: np.exp(-mu * s) * (np.cos(s) + mu * np.sin(s)), 0.0, np.pi)[0]
-    return float(np.exp(mu * np.pi) * (hanging + radius * grown))
-
-
-def _strip_over_drum(short: float, long: float, radius: float, fabric_name: str):
-    """A strip 8 cm wide draped over a drum of `radius` along x: `short` metres hanging on
-    the -y side, `long` on the +y side; its rest shape is flat (uv = arc length)."""
-    from datagen.types import Garment
-
-    arc = np.pi * radius
-    s = np.linspace(0.0, short + arc + long, int(round((short + arc + long) / 0.01)) + 1)
-    th = (s - short) / radius
-    y = np.where(s < short, -radius, np.where(s > short + arc, radius, -radius * np.cos(th)))
-    z = np.where(s < short, s - short, np.where(s > short + arc, short + arc - s,
-                                                 radius * np.sin(th)))
-    xs = np.linspace(-0.04, 0.04, 9)
-    uv = np.array([[x, sk] for sk in s for x in xs])
-    v = np.array([[x, yk, zk] for yk, zk in zip(y, z, strict=True) for x in xs])
-    faces = []
-    for k in range(len(s) - 1):
-        for i in range(len(xs) - 1):
-            a, c = k * len(xs) + i, (k + 1) * len(xs) + i
-            faces += [[a, c, c + 1], [a, c + 1, a + 1]]
-    return Garment(name="strip", category="sheet", vertices=v, faces=np.asarray(faces, np.int32),
-                   fabric=fabric_name, rest_vertices=np.column_stack([uv, np.zeros(len(uv))]),
-                   uv=uv)
-
 
 @pytest.mark.parametrize("solver, mu, short", [
     ("xpbd", 0.3, 0.2),
@@ -2385,30 +2349,30 @@ def test_strip_over_a_drum_holds_up_to_the_capstan_limit_and_slides_past_it(solv
     """Friction on a curved body is carried by the cloth's own tension pressing it on (the
     normal load a shirt's shoulders or a waistband rely on), not only by gravity. A silk strip
     over a fixed drum must hold a longer tail on the other side up to the capstan limit
-    (_belt_hold_limit: 3.6x the short one at mu 0.3, 13.5x at 0.6) and slide past it. Held at
-    0.95 of the limit (before this test both solvers held 0.98 of it) and sliding at 1.1 (at
-    1.05 both slid 4 cm in 0.5 s). The settle (velocities zeroed each frame) lets the tails
-    stretch under their weight first: dropped at once, they overshoot and tug the strip."""
-    from datagen.sim.scenes import cylinder_mesh
+    (scenes.capstan_hold_limit, the wrap's weight included: 3.6x the short one at mu 0.3,
+    13.5x at 0.6) and slide past it. Held at 0.95 of the limit (before this test both solvers
+    held 0.98 of it) and sliding at 1.1 (at 1.05 both slid 4 cm in 0.5 s). The settle
+    (velocities zeroed each frame) lets the tails stretch under their weight first: dropped at
+    once, they overshoot and tug the strip."""
+    from datagen.sim.scenes import capstan_hold_limit, drum, strip_over_drum
 
     radius, fps = 0.1, 30.0
-    drum, drum_faces = cylinder_mesh(radius, 0.4, sections=128, rings=4)
-    drum = np.column_stack([drum[:, 2] - 0.2, drum[:, 0], drum[:, 1]])  # its axis along x
-    track = ColliderTrack(np.repeat(drum[None], 16, axis=0), drum_faces,
-                          np.ones(len(drum_faces), bool), fps)
+    drum_v, drum_f = drum(radius)
+    track = ColliderTrack(np.repeat(drum_v[None], 16, axis=0), drum_f,
+                          np.ones(len(drum_f), bool), fps)
     silk = replace(FABRICS["silk"], friction=mu, air_drag=0.0)
     wrap = radius + silk.thickness  # the strip rests a thickness out
-    limit = _belt_hold_limit(mu, short, wrap)
+    limit = capstan_hold_limit(mu, short, wrap)
+    assert limit == pytest.approx({0.3: 3.577, 0.6: 13.48}[mu] * short, rel=1e-3)
     rise = {}
     for share in (0.95, 1.1):
-        strip = _strip_over_drum(short, share * limit, wrap, "drum_silk")
+        strip = strip_over_drum(short, share * limit, wrap, fabric="drum_silk")
         result = simulate([strip], track, SimOptions(solver=solver, settle_seconds=0.5,
                                                      fabrics={"drum_silk": silk}))
         short_end = result.vertices["strip"][:, :9, 2].mean(axis=1)
         rise[share] = short_end[-1] - short_end[0]
     assert abs(rise[0.95]) < 0.005, rise
     assert rise[1.1] > 0.03, rise
-
 
 def test_body_path_within_a_frame_is_exact_for_uniform_acceleration():
     """A collider accelerating uniformly (a parabola): the frames' central differences are its

@@ -110,3 +110,51 @@ def tube(
         uv=np.asarray(uv),
         loops=loops,
     )
+
+
+def drum(radius: float, length: float = 0.4, sections: int = 128):
+    """A closed cylinder lying along x, centred on the origin (cylinder_mesh turned on its
+    side): what a strip is draped over in the capstan scenes."""
+    v, f = cylinder_mesh(radius, length, sections=sections, rings=4)
+    return np.column_stack([v[:, 2] - length / 2, v[:, 0], v[:, 1]]), f
+
+
+def strip_over_drum(short: float, long: float, radius: float, width: float = 0.08,
+                    spacing: float = 0.01, name: str = "strip", fabric: str = "silk") -> Garment:
+    """A strip `width` wide draped over a drum along x (`drum`), resting at `radius` from its
+    axis: `short` metres hanging down the -y side, half a turn over the top, `long` metres down
+    the +y side. Its rest shape is flat (uv: across, arc length from the short end), so it starts
+    unstretched. Vertices row by row from the short end, `width / spacing + 1` to a row."""
+    arc = np.pi * radius
+    total = short + arc + long
+    s = np.linspace(0.0, total, int(round(total / spacing)) + 1)
+    angle = (s - short) / radius
+    y = np.where(s < short, -radius, np.where(s > short + arc, radius, -radius * np.cos(angle)))
+    z = np.where(s < short, s - short,
+                 np.where(s > short + arc, short + arc - s, radius * np.sin(angle)))
+    across = np.linspace(-width / 2, width / 2, int(round(width / spacing)) + 1)
+    m = len(across)
+    uv = np.column_stack([np.tile(across, len(s)), np.repeat(s, m)])
+    v = np.column_stack([uv[:, 0], np.repeat(y, m), np.repeat(z, m)])
+    faces = []
+    for k in range(len(s) - 1):
+        for i in range(m - 1):
+            a, c = k * m + i, (k + 1) * m + i
+            faces += [[a, c, c + 1], [a, c + 1, a + 1]]
+    return Garment(name=name, category="sheet", vertices=v, faces=np.asarray(faces, np.int32),
+                   fabric=fabric, rest_vertices=np.column_stack([uv, np.zeros(len(uv))]), uv=uv)
+
+
+def capstan_hold_limit(mu: float, short: float, radius: float) -> float:
+    """The longest tail a uniform belt hanging `short` metres down one side of a fixed
+    horizontal drum (half a turn of wrap at `radius`) holds on the other side with Coulomb
+    friction mu, its own weight on the drum included (independent of the weight per length w).
+    At the verge of slipping the tension along the wrap, at angle phi from the short side,
+    obeys dT/dphi = mu T + w R (cos phi + mu sin phi): the normal load is the tension's pull
+    T plus the wrap's weight, and gravity pulls along the wrap by w R cos phi. From
+    T(0) = w * short, T(pi) / w is the limit; without the wrap's weight it is
+    Euler-Eytelwein's short * e^(mu pi)."""
+    from scipy.integrate import quad
+
+    grown = quad(lambda p: np.exp(-mu * p) * (np.cos(p) + mu * np.sin(p)), 0.0, np.pi)[0]
+    return float(np.exp(mu * np.pi) * (short + radius * grown))
