@@ -152,9 +152,10 @@ def capstan_hold_limit(mu: float, short: float, radius: float) -> float:
     At the verge of slipping the tension along the wrap, at angle phi from the short side,
     obeys dT/dphi = mu T + w R (cos phi + mu sin phi): the normal load is the tension's pull
     T plus the wrap's weight, and gravity pulls along the wrap by w R cos phi. From
-    T(0) = w * short, T(pi) / w is the limit; without the wrap's weight it is
-    Euler-Eytelwein's short * e^(mu pi)."""
-    from scipy.integrate import quad
+    T(0) = w * short, T(pi) / w is the limit:
 
-    grown = quad(lambda p: np.exp(-mu * p) * (np.cos(p) + mu * np.sin(p)), 0.0, np.pi)[0]
-    return float(np.exp(mu * np.pi) * (short + radius * grown))
+        short e^(mu pi) + R 2 mu (e^(mu pi) + 1) / (1 + mu^2),
+
+    Euler-Eytelwein's short e^(mu pi) plus what the wrap's weight adds."""
+    grip = float(np.exp(mu * np.pi))
+    return short * grip + radius * 2.0 * mu * (grip + 1.0) / (1.0 + mu * mu)
