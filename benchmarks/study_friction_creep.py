@@ -64,8 +64,7 @@ def creep(solver: str, substeps: int, iterations: int, stiffness: float = 1.0) -
     except RejectedSequence as e:
         return {"rise": None, "seconds": time.perf_counter() - start, "note": e.reason}
     seconds = time.perf_counter() - start
-    across = int(round(0.08 / 0.01)) + 1  # the short end's row (strip_over_drum's spacing)
-    short_end = x[:, :across, 2].mean(axis=1) - lift
+    short_end = x[:, strip.uv[:, 1] == 0.0, 2].mean(axis=1) - lift  # its first row
     return {"rise": float(short_end[-1] - short_end[0]), "seconds": seconds, "note": ""}
 
 

@@ -1453,9 +1453,9 @@ def test_contact_friction_is_bounded_by_the_push_that_undoes_inward_motion(
     xp = nd(VEC3, [[0.0, 0.1, start_z]])
     contact_n, contact_v = nd(VEC3, [[0.0, 0.0, 0.0]]), nd(VEC3, [[0.0, 0.0, 0.0]])
     K.collide_body(x, xp, nd(REAL, [1.0]), nd(ti.i32, [0]), collider.faces, collider.fadj,
-                   collider.b0, collider.b1, collider.n0, collider.n1, 0.0, 1.0,
+                   collider.b0, collider.b1, collider.n0,  # the plane is still: its own path
                    nd(REAL, [0.004]), nd(REAL, [friction]), recover_speed * h, 0.05,
-                   contact_n, contact_v, h, True, False)
+                   contact_n, contact_v, h, True)
     moved = x.to_numpy()[0]
     assert moved[0] == pytest.approx(expected[0], abs=1e-7)
     assert moved[2] == pytest.approx(expected[1], abs=1e-7)
@@ -1751,9 +1751,8 @@ def test_the_limit_after_contact_on_moved_vertices_ends_where_full_sweeps_would_
     assert not lists[:n].any()  # no vertex left queued
     c = solver._placeholder_collider()
     K.collide_listed(solver.x, solver.xp, solver.w, solver.tri, c.faces, c.fadj, c.b0, c.b1,
-                     c.n0, c.n1, 0.0, 1.0, solver.thickness, solver.friction, 0.0, 1.0,
-                     solver.contact_n, solver.contact_v, 1.0 / 600.0, solver.limit_lists, n_moved,
-                     False, False)
+                     c.n0, solver.thickness, solver.friction, 0.0, 1.0, solver.contact_n,
+                     solver.contact_v, 1.0 / 600.0, solver.limit_lists, n_moved, False)
     assert not solver.limit_lists.to_numpy()[: 2 * n].any()  # the moved flags cleared too
 
 

@@ -947,12 +947,9 @@ def collide_body(
     tri: I1,
     faces: I3,
     fadj: I3,
-    b0: V3,
-    b1: V3,
-    n0: V3,
-    n1: V3,
-    s0: REAL,
-    s1: REAL,
+    bs0: V3,
+    bs1: V3,
+    ns1: V3,
     thickness: F1,
     friction: F1,
     recover: REAL,
@@ -961,19 +958,14 @@ def collide_body(
     contact_v: V3,
     h: REAL,
     use_friction: ti.template(),
-    interpolated: ti.template(),
 ):
-    """collide_one for every cloth vertex. `interpolated`: b0, b1 and n0 are the body at the
-    substep's start and end and its normals at the end (interpolate_body), and s0, s1 are not
-    read: the body is taken at the literal fractions 0 and 1, as xpbd_frame takes it, so that
-    the per-effect path compiles the fused kernel's arithmetic."""
+    """collide_one for every cloth vertex against the body at the substep's start and end, bs0
+    and bs1, with its normals at the end ns1 (interpolate_body): taken at the literal fractions
+    0 and 1, as xpbd_frame takes it, so that the per-effect path compiles the fused kernel's
+    arithmetic."""
     for i in x:
-        if ti.static(interpolated):
-            collide_one(i, x, xp, w, tri, faces, fadj, b0, b1, n0, n0, 0.0, 1.0, thickness,
-                        friction, recover, release, contact_n, contact_v, h, use_friction)
-        else:
-            collide_one(i, x, xp, w, tri, faces, fadj, b0, b1, n0, n1, s0, s1, thickness,
-                        friction, recover, release, contact_n, contact_v, h, use_friction)
+        collide_one(i, x, xp, w, tri, faces, fadj, bs0, bs1, ns1, ns1, 0.0, 1.0, thickness,
+                    friction, recover, release, contact_n, contact_v, h, use_friction)
 
 
 # -- garment-garment collision (layered outfits) -----------------------------------------------
@@ -1939,7 +1931,7 @@ def interpolate_body_one(j: ti.i32, b0: V3, b1: V3, n0: V3, n1: V3, s0: REAL, s1
 def interpolate_body(b0: V3, b1: V3, n0: V3, n1: V3, used: I1, s0: REAL, s1: REAL, bs0: V3,
                      bs1: V3, ns1: V3, serialize: ti.template()):
     """interpolate_body_one at the colliding faces' vertices, as xpbd_frame does each substep
-    (collide_body and collide_listed then take them with `interpolated`)."""
+    (collide_body and collide_listed then take them)."""
     ti.loop_config(serialize=serialize)
     for u in range(used.shape[0]):
         interpolate_body_one(used[u], b0, b1, n0, n1, s0, s1, bs0, bs1, ns1)
@@ -1947,21 +1939,17 @@ def interpolate_body(b0: V3, b1: V3, n0: V3, n1: V3, used: I1, s0: REAL, s1: REA
 
 @ti.kernel
 def collide_listed(
-    x: V3, xp: V3, w: F1, tri: I1, faces: I3, fadj: I3, b0: V3, b1: V3, n0: V3, n1: V3,
-    s0: REAL, s1: REAL, thickness: F1, friction: F1, recover: REAL, release: REAL,
-    contact_n: V3, contact_v: V3, h: REAL, lists: I1, n_moved: ti.i32,
-    use_collision: ti.template(), interpolated: ti.template(),
+    x: V3, xp: V3, w: F1, tri: I1, faces: I3, fadj: I3, bs0: V3, bs1: V3, ns1: V3,
+    thickness: F1, friction: F1, recover: REAL, release: REAL, contact_n: V3, contact_v: V3,
+    h: REAL, lists: I1, n_moved: ti.i32, use_collision: ti.template(),
 ):
     """Contact without friction for the vertices limit_after_contact_active moved, clearing
-    their flags. `interpolated` as in collide_body."""
+    their flags; the body as collide_body takes it."""
     ti.loop_config(serialize=True)
     for q in range(n_moved):
         i = moved_by_limit(q, x.shape[0], lists)
-        if ti.static(use_collision and interpolated):
-            collide_one(i, x, xp, w, tri, faces, fadj, b0, b1, n0, n0, 0.0, 1.0, thickness,
-                        friction, recover, release, contact_n, contact_v, h, False)
-        elif ti.static(use_collision):
-            collide_one(i, x, xp, w, tri, faces, fadj, b0, b1, n0, n1, s0, s1, thickness,
+        if ti.static(use_collision):
+            collide_one(i, x, xp, w, tri, faces, fadj, bs0, bs1, ns1, ns1, 0.0, 1.0, thickness,
                         friction, recover, release, contact_n, contact_v, h, False)
 
 

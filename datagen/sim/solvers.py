@@ -526,31 +526,14 @@ class ClothSolver:
         """Contact with the body at the substep's start and end on the frame's path
         (kernels.interpolate_body), as every solver takes it."""
         self._interpolate_body(collider, s0, s1)
-        self._run(
-            "body_collision",
-            K.collide_body,
-            self.x,
-            self.xp,
-            self.w,
-            self.tri,
-            collider.faces,
-            collider.fadj,
-            collider.bs0,
-            collider.bs1,
-            collider.ns1,
-            collider.ns1,
-            s0,
-            s1,
-            self.thickness,
-            self.friction,
-            self.settings.recover_speed * h,
-            2.0 * collider.cell,
-            self.contact_n,
-            self.contact_v,
-            h,
-            friction,
-            True,
-        )
+        self._collide_interpolated(collider, h, friction)
+
+    def _collide_interpolated(self, c, h: float, friction: bool) -> None:
+        """Contact with the body as _interpolate_body last put it in c.bs0, c.bs1, c.ns1."""
+        self._run("body_collision", K.collide_body, self.x, self.xp, self.w, self.tri, c.faces,
+                  c.fadj, c.bs0, c.bs1, c.ns1, self.thickness, self.friction,
+                  self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n, self.contact_v,
+                  h, friction)
 
     def search(self, collider, s: float) -> None:
         """Global closest-triangle search against the body for the vertices that track a
@@ -687,10 +670,7 @@ class XPBDSolver(ClothSolver):
                   c.origin, c.inv_cell, c.dims, c.starts, c.items, c.cell, self.tri,
                   self.guard, self.odo, c.max_speed, c.grid_tag, s1, c.shift, c.tbox,
                   c.fold_nd, 0)
-        self._run("body_collision", K.collide_body, self.x, self.xp, self.w, self.tri, c.faces,
-                  c.fadj, c.bs0, c.bs1, c.ns1, c.ns1, s0, s1, self.thickness, self.friction,
-                  self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n, self.contact_v,
-                  h, self.effects.friction, True)
+        self._collide_interpolated(c, h, self.effects.friction)
 
     def _limit_after_contact(self, collider, s0: float, s1: float, h: float) -> None:
         """As ClothSolver's, with the sweeps after the first on the springs around what moved
@@ -716,9 +696,9 @@ class XPBDSolver(ClothSolver):
         if body:  # the body at this substep, as the fused kernel takes it (see _collide)
             self._interpolate_body(c, s0, s1)
         self._run("body_collision", K.collide_listed, self.x, self.xp, self.w, self.tri,
-                  c.faces, c.fadj, c.bs0, c.bs1, c.ns1, c.ns1, s0, s1, self.thickness,
-                  self.friction, self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n,
-                  self.contact_v, h, self.limit_lists, n_moved, body, True)
+                  c.faces, c.fadj, c.bs0, c.bs1, c.ns1, self.thickness, self.friction,
+                  self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n, self.contact_v,
+                  h, self.limit_lists, n_moved, body)
 
     def _limit_after_contact_coloured(self, collider, s0: float, s1: float, h: float) -> None:
         """The strain limit after contact on a parallel backend: coloured sweeps, then contact
