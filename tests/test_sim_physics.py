@@ -925,6 +925,78 @@ def test_the_body_grid_lists_each_cell_in_triangle_order():
     np.testing.assert_array_equal(items.to_numpy(), np.concatenate(lists))
 
 
+def test_path_bounds_hold_the_body_paths_speed_and_departure_from_the_chord():
+    """The collision search's proofs rest on collider.path_bounds: no point of a vertex's
+    cubic path within a frame is farther from its chord than the bound, nor faster (in the
+    world, and relative to the mean motion) than the speed bound, for any end tangents; along
+    the chord itself (no tangents, or tangents equal to the chord) the bounds are the chord's
+    own, so a body on straight paths is searched as before."""
+    from datagen.sim.collider import path_bounds
+
+    rng = np.random.default_rng(5)
+    n = 400
+    a = rng.normal(size=(n, 3))
+    # float32 chords, as the collider's: 3d - d - d is then exact in float64.
+    d = rng.normal(scale=0.1, size=(n, 3)).astype(np.float32).astype(np.float64)
+    tangents = d[None] + rng.normal(scale=0.08, size=(2, n, 3))
+    shift = d.mean(axis=0)
+    speed_sq, relative, bulge = path_bounds(np.ascontiguousarray(d.T), tangents, shift)
+    s = np.linspace(0.0, 1.0, 201)[:, None, None]
+    u, w = tangents[0] - d, tangents[1] - d
+    departure = s * (1 - s) * ((1 - s) * u - s * w)
+    velocity = d + (1 - s) * (1 - 3 * s) * u - s * (2 - 3 * s) * w
+    # The curve these describe is kernels.hermite3's (from a to a + d with these tangents).
+    p = a + s * d + departure
+    np.testing.assert_allclose(p[0], a)
+    np.testing.assert_allclose(p[-1], a + d)
+    np.testing.assert_allclose(np.gradient(p, s[:, 0, 0], axis=0)[100], velocity[100], atol=1e-3)
+    assert np.all(np.linalg.norm(departure, axis=2).max(axis=0) <= bulge + 1e-12)
+    assert np.all(np.linalg.norm(velocity, axis=2).max(axis=0) <= np.sqrt(speed_sq) + 1e-12)
+    assert np.all(np.linalg.norm(velocity - shift, axis=2).max(axis=0) <= relative + 1e-12)
+    # Tight enough not to file triangles far and wide: 1.6x the sampled extremes on average.
+    assert np.mean(bulge / np.linalg.norm(departure, axis=2).max(axis=0)) < 2.0
+    chord = path_bounds(np.ascontiguousarray(d.T), None, shift)
+    as_chord = path_bounds(np.ascontiguousarray(d.T), np.stack([d, d]), shift)
+    np.testing.assert_allclose(chord[0], np.einsum("ij,ij->i", d, d), rtol=1e-12)
+    np.testing.assert_allclose(chord[1], np.linalg.norm(d - shift, axis=1), rtol=1e-12)
+    assert not chord[2].any()
+    for x, y in zip(chord, as_chord, strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_cloth_beyond_the_chords_reach_is_hit_where_the_body_path_bulges():
+    """A ball turning a corner at 9 m/s (frames at the corners of a 0.3 m square) follows a
+    Hermite path that bulges 37.5 mm outward of its chord in mid-frame. A small sheet 30 mm
+    beyond the ball along the chord, more than the search's reach of a grid cell (25 mm), is
+    7.5 mm inside the ball there. The search must find the ball where it is on its path: before
+    the triangles' swept boxes grew by their paths' departure (collider.path_bounds), they were
+    culled by the chord's box and the ball passed through the sheet without touching it."""
+    import trimesh
+
+    side, radius, fps = 0.3, 0.1, 30.0
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=radius)
+    corners = np.array([[0.0, 0.0, 0.0], [side, 0.0, 0.0], [side, side, 0.0], [0.0, side, 0.0]])
+    frames = np.asarray(ball.vertices)[None] + corners[:, None, :]
+    track = ColliderTrack(frames, np.asarray(ball.faces, np.int32), np.ones(len(ball.faces), bool),
+                          fps)
+    sheet = grid_sheet(4, 0.04, 0.0)
+    gap = 0.03
+    flat = sheet.vertices.copy()
+    sheet.vertices = np.stack([flat[:, 2] + side + radius + gap, flat[:, 1] + side / 2,
+                               flat[:, 0]], axis=1)
+    sheet.fabric = "still_cotton"
+    cotton = replace(FABRICS["cotton"], air_drag=0.0)
+    result = simulate([sheet], track, SimOptions(settle_seconds=0.0, frames=3,
+                                                 fabrics={"still_cotton": cotton}))
+    x = result.vertices["sheet"]
+    start = sheet.vertices
+    # Mid-frame the ball's surface reaches side + radius + 37.5 mm: the sheet's near edge is
+    # struck and carried outward past it (untouched it would not move along x at all).
+    bulge = side / 8.0
+    assert x[2, :, 0].min() - start[:, 0].min() > 0.5 * (bulge - gap)
+    assert x[2, :, 0].max() > side + radius + bulge
+
+
 @pytest.mark.parametrize("hashed", [False, True])
 def test_the_one_launch_serial_grid_is_the_three_kernel_grid(hashed, monkeypatch):
     """Serial backends build the body grid in one launch (grid_build_serial: count, prefix,
@@ -950,7 +1022,10 @@ def test_the_one_launch_serial_grid_is_the_three_kernel_grid(hashed, monkeypatch
     collider = BodyCollider(faces, mask, len(v0))
     collider.swept.items = ti.ndarray(ti.i32, 8)  # far too short: the build must grow it
     collider.swept.items_alloc = 8
-    collider.set_frames(v0, v1)
+    # Along curved paths: the triangles' boxes grow by how far the paths stray from the chords.
+    motion = v1 - v0
+    collider.set_frames(v0, v1, np.stack([motion + [0.03, 0.0, 0.0], motion - [0.0, 0.02, 0.0]]))
+    assert collider.widest_bulge > 0.005
     n_cells = int(np.prod(collider.dims_np)) if not collider.hashed else collider.hash_buckets
     assert collider.hashed == hashed
     total = int(collider.starts.to_numpy()[n_cells])
@@ -971,8 +1046,8 @@ def test_the_one_launch_serial_grid_is_the_three_kernel_grid(hashed, monkeypatch
     tbox.from_numpy(boxes)
     args = (collider.origin, collider.inv_cell, collider.dims)
     K.grid_count(collider.b0, collider.b1, VEC3(0.0, 0.0, 0.0), collider.shift,
-                 collider.faces, collider.mask, *args, counts, collider.relative_travel, tbox,
-                 True)
+                 collider.faces, collider.mask, *args, counts, collider.relative_travel,
+                 collider.bulge, tbox, True)
     K.grid_prefix(counts, starts, n_cells, blocks)
     K.grid_fill(collider.mask, tbox, *args, counts, starts, items, True)
     np.testing.assert_array_equal(serial_starts, starts.to_numpy()[: n_cells + 1])

@@ -1223,7 +1223,7 @@ def grid_cell(c: ti.math.ivec3, dims: ti.math.ivec3) -> ti.i32:
 @ti.func
 def count_triangle(
     t: ti.i32, b0: V3, b1: V3, shift0: vec3, shift1: vec3, faces: I3, origin: vec3,
-    inv_cell: REAL, dims: ti.math.ivec3, counts: I1, travel: F1, tbox: V8,
+    inv_cell: REAL, dims: ti.math.ivec3, counts: I1, travel: F1, bulge: F1, tbox: V8,
 ):
     """Triangle t's box swept from b0 - shift0 to b1 - shift1 into tbox[t], and one more in
     each cell it overlaps (grid_count). The grid's coordinates move with the body's mean motion
@@ -1233,12 +1233,16 @@ def count_triangle(
     body's triangles sweep 4 cm a frame in the world, mostly with the torso: their boxes in
     moving coordinates fill 31 % fewer cells, and cloth that moves with the body stays near
     the cells its search scanned (nearest_one's guards). The depth QA's grid files the boxes
-    at the frame's end (b0 = b1, shift0 = shift1 = shift)."""
+    at the frame's end (b0 = b1, shift0 = shift1 = shift). The body's vertices follow cubic
+    paths, not the chords (interpolate_body_one): each box grows by the most its corners' paths
+    stray from their chords (`bulge`, Collider.path_bounds; zero for the end grid), and
+    `travel` bounds their speed along the paths."""
     f = faces[t]
     a0, a1, a2 = b0[f[0]] - shift0, b0[f[1]] - shift0, b0[f[2]] - shift0
     e0, e1, e2 = b1[f[0]] - shift1, b1[f[1]] - shift1, b1[f[2]] - shift1
-    lo = ti.min(ti.min(ti.min(a0, a1), ti.min(a2, e0)), ti.min(e1, e2))
-    hi = ti.max(ti.max(ti.max(a0, a1), ti.max(a2, e0)), ti.max(e1, e2))
+    pad = ti.max(bulge[f[0]], bulge[f[1]], bulge[f[2]])
+    lo = ti.min(ti.min(ti.min(a0, a1), ti.min(a2, e0)), ti.min(e1, e2)) - pad
+    hi = ti.max(ti.max(ti.max(a0, a1), ti.max(a2, e0)), ti.max(e1, e2)) + pad
     speed = ti.max(travel[f[0]], travel[f[1]], travel[f[2]])
     tbox[t] = GUARD(lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], speed, tbox[t][T_PART])
     c0 = first_cell(lo, origin, inv_cell)
@@ -1252,7 +1256,7 @@ def count_triangle(
 @ti.func
 def count_triangles(
     b0: V3, b1: V3, shift0: vec3, shift1: vec3, faces: I3, mask: I1, origin: vec3,
-    inv_cell: REAL, dims: ti.math.ivec3, counts: I1, travel: F1, tbox: V8,
+    inv_cell: REAL, dims: ti.math.ivec3, counts: I1, travel: F1, bulge: F1, tbox: V8,
     serialize: ti.template(),
 ):
     """count_triangle for every triangle the mask keeps: grid_count's loop, and the first of
@@ -1261,7 +1265,7 @@ def count_triangles(
     for t in range(faces.shape[0]):
         if mask[t] != 0:
             count_triangle(t, b0, b1, shift0, shift1, faces, origin, inv_cell, dims, counts,
-                           travel, tbox)
+                           travel, bulge, tbox)
 
 
 @ti.kernel
@@ -1277,6 +1281,7 @@ def grid_count(
     dims: ti.math.ivec3,
     counts: I1,
     travel: F1,
+    bulge: F1,
     tbox: V8,
     serialize: ti.template(),
 ):
@@ -1285,7 +1290,7 @@ def grid_count(
     nearest_one. `serialize` on a serial backend: the counts' atomic adds become plain ones (a
     walking body's grid counted in 0.6 ms instead of 1.1)."""
     count_triangles(b0, b1, shift0, shift1, faces, mask, origin, inv_cell, dims, counts, travel,
-                    tbox, serialize)
+                    bulge, tbox, serialize)
 
 
 # Cells per block of the grid's prefix sum: blocks are summed in parallel, their sums prefixed
@@ -1396,6 +1401,7 @@ def grid_build_serial(
     n_cells: ti.i32,
     counts: I1,
     travel: F1,
+    bulge: F1,
     tbox: V8,
     starts: I1,
     items: I1,
@@ -1408,7 +1414,7 @@ def grid_build_serial(
     short for them nothing is filed (the caller grows it and calls again). `counts` end at zero
     either way."""
     count_triangles(b0, b1, shift0, shift1, faces, mask, origin, inv_cell, dims, counts, travel,
-                    tbox, True)
+                    bulge, tbox, True)
     run = 0
     ti.loop_config(serialize=True)
     for c in range(n_cells):
