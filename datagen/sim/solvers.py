@@ -517,10 +517,18 @@ class ClothSolver:
     def _search_and_collide(self, collider, s0: float, s1: float, h: float) -> None:
         """A substep's body contact. Vertices that track no triangle look for one at every
         substep (cheap: they are far from the body, in empty cells), so fast limbs and falling
-        cloth are caught in time."""
-        self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s1,
-                  K.SEARCH_UNTRACKED, self.guard, self.odo + s1 * collider.max_speed)
-        self._collide_body(collider, s0, s1, h, self.effects.friction)
+        cloth are caught in time, among the triangles where the body's path puts them at the
+        substep's end, as contact then takes them; computed as the fused xpbd frame kernel
+        computes it (the body interpolated once per substep, the odometer summed in the
+        kernel), so that a profiled frame computes an unprofiled one operation for operation
+        (to the last bit without fast math: backend.py)."""
+        c = collider
+        self._interpolate_body(c, s0, s1)
+        self._run("body_collision", K.nearest_untracked, self.x, self.w, c.bs1, c.faces,
+                  c.origin, c.inv_cell, c.dims, c.starts, c.items, c.cell, self.tri,
+                  self.guard, self.odo, c.max_speed, c.grid_tag, s1, c.shift, c.tbox,
+                  c.fold_nd, 0)
+        self._collide_interpolated(c, h, self.effects.friction)
 
     def _collide_body(self, collider, s0: float, s1: float, h: float, friction: bool) -> None:
         """Contact with the body at the substep's start and end on the frame's path
@@ -656,21 +664,6 @@ class XPBDSolver(ClothSolver):
         self.fused_spring_ranges = _nd(ti.math.ivec2, np.asarray(
             forward + reverse if forward else [(0, 0)], np.int32).reshape(-1, 2))
         self._no_bend_colours = _Colouring(np.zeros((0, 4), np.int32), self.n)
-
-    def _search_and_collide(self, collider, s0: float, s1: float, h: float) -> None:
-        """ClothSolver's; on the serial path computed as the fused frame kernel computes it
-        (the body interpolated once per substep, taken at the fractions 0 and 1, the odometer
-        summed in the kernel), so that a profiled frame computes an unprofiled one operation
-        for operation (to the last bit without fast math: backend.py)."""
-        if not self.gauss_seidel:
-            return super()._search_and_collide(collider, s0, s1, h)
-        c = collider
-        self._interpolate_body(c, s0, s1)
-        self._run("body_collision", K.nearest_untracked, self.x, self.w, c.bs1, c.faces,
-                  c.origin, c.inv_cell, c.dims, c.starts, c.items, c.cell, self.tri,
-                  self.guard, self.odo, c.max_speed, c.grid_tag, s1, c.shift, c.tbox,
-                  c.fold_nd, 0)
-        self._collide_interpolated(c, h, self.effects.friction)
 
     def _limit_after_contact(self, collider, s0: float, s1: float, h: float) -> None:
         """As ClothSolver's, with the sweeps after the first on the springs around what moved
