@@ -528,10 +528,11 @@ class BodyCollider:
 
     @property
     def max_speed(self) -> float:
-        """Fastest body vertex in the current frame, in metres per frame."""
+        """A bound on the body's fastest vertex's speed along its path in the current frame
+        (path_bounds), in metres per frame: at least the longest chord."""
         return self.fastest_travel
 
     def fastest_travel_among(self, vertices: slice) -> float:
-        """How far the fastest of `vertices` (a scene's body in a batch) travels in the
-        current frame, in metres."""
+        """A bound on how fast the fastest of `vertices` (a scene's body in a batch) moves
+        along its path in the current frame (path_bounds), in metres per frame."""
         return float(np.sqrt(self.travel_sq[vertices].max()))

@@ -1502,17 +1502,18 @@ def nearest_one(
     provably cannot be near: that search showed no triangle within `max_dist` of guard.xyz,
     and since then
     - the vertex has moved |x - guard.xyz| and the triangles at most |odo - guard.odo|, `odo`
-      being how far the body's fastest vertex has travelled; or,
+      bounding how far the body's fastest vertex has travelled (its path's speed bound per
+      frame, summed); or,
     - the grid is still the one searched (guard.tag == grid_tag; grids are numbered and the
       numbers never repeat). It holds each triangle's box swept over the whole frame, so while
       the vertex stays within half of `max_dist` of where it was searched in the grid's
       coordinates, which move with the body's mean motion over the frame (`shift`), only the
       searched cells' triangles can come near, and they can close in by no more than the
       vertex's and their own motion relative to that mean motion: the vertex's
-      |x - guard.xyz - shift * (s_frame - guard.time)|, theirs the fastest corner's travel
-      (each collider vertex's distance from the mean motion over the frame, kept per triangle
-      in `tbox` with its box: grid_count) times the frame fraction since. `s_frame` is the
-      fraction of the frame the body is at.
+      |x - guard.xyz - shift * (s_frame - guard.time)|, theirs the fastest corner's speed
+      relative to that mean motion (a bound over its path within the frame,
+      collider.path_bounds, kept per triangle in `tbox` with its box: grid_count) times the
+      frame fraction since. `s_frame` is the fraction of the frame the body is at.
     The odometer counts the fastest limb, and on a walking body it had every loose vertex
     searched again at almost every substep: half of an xpbd frame. Cloth near the torso moves
     with it, so the local, relative bound holds for several substeps (in world coordinates the

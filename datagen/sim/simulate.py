@@ -589,8 +589,8 @@ class _Simulation:
 
     def _body_speed(self, vertices: slice) -> float:
         """The speed of the body's fastest vertex over the current frame (m/s; 0 without a
-        body), among `vertices` (a scene's body in a batch), as the collider measured it when
-        _set_body gave it the frame."""
+        body), among `vertices` (a scene's body in a batch), as the collider bounded it along
+        the body's path when _set_body gave it the frame (collider.path_bounds)."""
         if self.body is None:
             return 0.0
         return self.collider.fastest_travel_among(vertices) * self.fps
