@@ -69,7 +69,8 @@ def test_presets_keep_their_step_and_search_interval_in_time_at_any_output_rate(
         assert default.resolve_steps(fps) == (substeps, 4), fps
     assert default.steps_label(60.0) == "default 10x4, sor 1.6"
     assert SimOptions(substeps=20).resolve_steps(60.0) == (20, 4)  # the caller's, as given
-    assert SimOptions(solver="implicit").resolve_steps(60.0) == (3, 10)  # 2.5 rounded up
+    assert SimOptions(solver="implicit").resolve_steps(60.0) == (5, 10)
+    assert SimOptions(solver="implicit", quality="draft").resolve_steps(24.0) == (3, 4)  # 2.5 up
     explicit = SimOptions(solver="explicit")
     assert [explicit.resolve_steps(fps)[0] for fps in (30.0, 29.97, 30.3)] == [400, 400, 396]
     # The ladder at 60 fps: reference 40x8 is 20x8 there, and the rung past it twice that.
