@@ -338,8 +338,8 @@ def _worker(arch: str, out: Path, scenes: Path | None, mode: str) -> None:
     if mode == "serial_limit":
         from datagen.sim.solvers import XPBDSolver
 
-        def listed(self, collider, s0, s1, h):
-            self._limit_after_contact_listed(collider, s0, s1, h, collider is not None)
+        def listed(self, collider, h):
+            self._limit_after_contact_listed(collider, h, collider is not None)
 
         XPBDSolver._limit_after_contact_coloured = listed
         cases = cases[:1]

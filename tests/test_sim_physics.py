@@ -1780,7 +1780,9 @@ def _limit_a_patch_pulled_into_a_plane(make):
     collider.set_frames(plane, plane)
     collider.nearest(solver.x, solver.w, solver.tri, 1.0)  # every vertex tracks its triangle
     solver.xp.from_numpy(solver.x.to_numpy())  # the substep started here
-    solver._limit_after_contact(collider, 0.0, 1.0, 1.0 / 600.0)
+    # The body where a substep's contact leaves it (ClothSolver._search_and_collide).
+    solver._interpolate_body(collider, 0.0, 1.0)
+    solver._limit_after_contact(collider, 1.0 / 600.0)
     return solver, x, solver.get_state()[0], side
 
 
@@ -2038,7 +2040,7 @@ def test_the_coloured_limit_after_contact_holds_the_limit_and_keeps_contact(monk
     moved = solver.limit_moved.to_numpy().astype(bool)
     assert 0 < moved.sum() < len(x)
     assert np.array_equal(after[~moved], x[~moved])  # untouched where nothing moved
-    solver._limit_after_contact_coloured(None, 0.0, 1.0, 1.0 / 600.0)
+    solver._limit_after_contact_coloured(None, 1.0 / 600.0)
     # Within the tolerance already: one sweep takes up what is left, under 0.1 % of an edge.
     assert np.abs(solver.get_state()[0] - after).max() < 1e-5
     assert solver.launches["strain_limit"] == 1

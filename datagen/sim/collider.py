@@ -224,7 +224,6 @@ class BodyCollider:
         # triangles' swept boxes grow by it. The frame's end grid has none.
         self.bulge = np.zeros(n_vertices, NP_REAL)
         self.no_bulge = np.zeros(n_vertices, NP_REAL)
-        self.widest_bulge = 0.0
         tbox = ti.ndarray(K.GUARD, len(self.faces_np))  # per triangle (K.grid_count)
         boxes = np.zeros((len(self.faces_np), K.GUARD.n), NP_REAL)
         if face_parts is None:
@@ -327,7 +326,6 @@ class BodyCollider:
         self.fastest_travel = float(np.sqrt(self.travel_sq.max()))
         self.relative_travel = relative.astype(NP_REAL)
         self.bulge = bulge.astype(NP_REAL)
-        self.widest_bulge = float(bulge.max(initial=0.0))
         self._at_rest = bool(np.array_equal(v0, v1))
         if self._at_rest:
             K.copy_in(self.b0, self.b1, backend.serial())
@@ -525,6 +523,12 @@ class BodyCollider:
             self._guard = ti.ndarray(K.GUARD, n)
         self._guard.from_numpy(fresh_guards(n))
         return self._guard
+
+    @property
+    def widest_bulge(self) -> float:
+        """How far the body's paths stray from their chords in the current frame, at most
+        (path_bounds): the grid's extent grows by it."""
+        return float(self.bulge.max(initial=0.0))
 
     @property
     def max_speed(self) -> float:

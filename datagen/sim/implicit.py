@@ -81,7 +81,7 @@ class ImplicitSolver(ClothSolver):
         self._pins(s1)
         self._collide(collider, s0, s1, h)
         self._cloth_collisions(h, s0, s1)
-        self._limit_after_contact(collider, s0, s1, h)
+        self._limit_after_contact(collider, h)
         self._run("integration", K.finish, self.x, start, self.v, self.w, self.contact_n,
                   self.contact_v, h_velocity)
 

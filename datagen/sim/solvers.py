@@ -287,7 +287,7 @@ class ClothSolver:
                 break
         self.costs["strain_limit"] += time.perf_counter() - t
 
-    def _limit_after_contact(self, collider, s0: float, s1: float, h: float) -> None:
+    def _limit_after_contact(self, collider, h: float) -> None:
         """The strain limit's sweeps after contact, along the body (see
         kernels.limit_after_contact_one), then contact again, without friction, for the
         vertices they moved into the body: every solver ends its substep with them."""
@@ -305,7 +305,8 @@ class ClothSolver:
                 break
         self.costs["strain_limit"] += time.perf_counter() - t
         if body and moved:
-            self._collide_body(collider, s0, s1, h, False)
+            # The body where _collide put it this substep (_search_and_collide).
+            self._collide_interpolated(collider, h, False)
 
     # -- cloth-cloth collision ---------------------------------------------------------------
     def _init_self_collision(self) -> None:
@@ -504,7 +505,7 @@ class ClothSolver:
         velocities from the positions."""
         self._collide(collider, s0, s1, h)
         self._cloth_collisions(h, s0, s1)
-        self._limit_after_contact(collider, s0, s1, h)
+        self._limit_after_contact(collider, h)
         self._run("integration", finish, self.x, self.xp, self.v, self.w, self.contact_n,
                   self.contact_v, h)
 
@@ -529,12 +530,6 @@ class ClothSolver:
                   self.guard, self.odo, c.max_speed, c.grid_tag, s1, c.shift, c.tbox,
                   c.fold_nd, 0)
         self._collide_interpolated(c, h, self.effects.friction)
-
-    def _collide_body(self, collider, s0: float, s1: float, h: float, friction: bool) -> None:
-        """Contact with the body at the substep's start and end on the frame's path
-        (kernels.interpolate_body), as every solver takes it."""
-        self._interpolate_body(collider, s0, s1)
-        self._collide_interpolated(collider, h, friction)
 
     def _collide_interpolated(self, c, h: float, friction: bool) -> None:
         """Contact with the body as _interpolate_body last put it in c.bs0, c.bs1, c.ns1."""
@@ -665,7 +660,7 @@ class XPBDSolver(ClothSolver):
             forward + reverse if forward else [(0, 0)], np.int32).reshape(-1, 2))
         self._no_bend_colours = _Colouring(np.zeros((0, 4), np.int32), self.n)
 
-    def _limit_after_contact(self, collider, s0: float, s1: float, h: float) -> None:
+    def _limit_after_contact(self, collider, h: float) -> None:
         """As ClothSolver's, with the sweeps after the first on the springs around what moved
         (kernels.limit_after_contact_active), and contact again on the vertices they moved. On
         a parallel backend, coloured sweeps instead (_limit_after_contact_coloured)."""
@@ -673,11 +668,10 @@ class XPBDSolver(ClothSolver):
         if not (self.f_nsets and (body or self.use_layers)):
             return
         if not self.gauss_seidel:
-            return self._limit_after_contact_coloured(collider if body else None, s0, s1, h)
-        self._limit_after_contact_listed(collider, s0, s1, h, body)
+            return self._limit_after_contact_coloured(collider if body else None, h)
+        self._limit_after_contact_listed(collider, h, body)
 
-    def _limit_after_contact_listed(self, collider, s0: float, s1: float, h: float,
-                                    body: bool) -> None:
+    def _limit_after_contact_listed(self, collider, h: float, body: bool) -> None:
         """The serial form: one task that sweeps the springs around what the last sweep
         moved (kernels.limit_after_contact_listed), then contact for the moved vertices."""
         t = time.perf_counter()
@@ -685,15 +679,15 @@ class XPBDSolver(ClothSolver):
                                                self.contact_n, self.limit_adj, self.limit_lists)
         self.launches["strain_limit"] += 1
         self.costs["strain_limit"] += time.perf_counter() - t
+        # The body where _collide put it this substep (_search_and_collide), as the fused
+        # kernel takes it.
         c = collider if body else self._placeholder_collider()
-        if body:  # the body at this substep, as the fused kernel takes it (see _collide)
-            self._interpolate_body(c, s0, s1)
         self._run("body_collision", K.collide_listed, self.x, self.xp, self.w, self.tri,
                   c.faces, c.fadj, c.bs0, c.bs1, c.ns1, self.thickness, self.friction,
                   self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n, self.contact_v,
                   h, self.limit_lists, n_moved, body)
 
-    def _limit_after_contact_coloured(self, collider, s0: float, s1: float, h: float) -> None:
+    def _limit_after_contact_coloured(self, collider, h: float) -> None:
         """The strain limit after contact on a parallel backend: coloured sweeps, then contact
         again for what they moved (parallel_kernels)."""
         lc = self.limit_colours
@@ -708,9 +702,9 @@ class XPBDSolver(ClothSolver):
             if worst < K.AFTER_CONTACT_TOLERANCE:
                 break
         self.costs["strain_limit"] += time.perf_counter() - t
+        # The body where _collide put it this substep (_search_and_collide): fractions 0 and
+        # 1 of bs0, bs1.
         c = collider if collider is not None else self._placeholder_collider()
-        if collider is not None:  # the body at this substep (fractions 0 and 1 of bs0, bs1)
-            self._interpolate_body(c, s0, s1)
         self._run("body_collision", PK.collide_moved, self.x, self.xp, self.w, self.tri,
                   c.faces, c.fadj, c.bs0, c.bs1, c.ns1, c.ns1, 0.0, 1.0, self.thickness,
                   self.friction, self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n,
