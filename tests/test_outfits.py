@@ -162,6 +162,81 @@ def test_grading_evens_out_a_local_stretch_and_leaves_an_even_scale_alone():
     assert after.mean() == pytest.approx(before.mean(), rel=0.1)
 
 
+def test_a_loose_garment_is_cut_for_the_subject_at_the_yoke(body_model):
+    """A loose strap top and t-shirt (tightness -1.5, -1.5) keep the looseness below the chest
+    (the hem as long as the loose size's) but their yoke is the subject's: the straps and the
+    shoulders' part of the neckline lie as far from the centre line as on a garment cut for the
+    subject (within 3 mm), where the loose size put them 8-10 mm further out, on the shoulders'
+    slope. A garment nowhere loose has no separate yoke."""
+    from datagen.body.anny_model import NEUTRAL_SHAPE
+    from datagen.garment.outfit import _template, default_templates_dir
+    from datagen.garment.resize import garment_body_shape, resize, yoke_tightness
+    from datagen.skeleton import JOINT_NAMES
+
+    assert yoke_tightness((0.3, 0.0)) is None
+    assert yoke_tightness((-1.0, 0.4)) == (0.0, 0.4)
+    assert yoke_tightness((-1.5, -0.2)) == (0.0, 0.0)
+
+    def spread(v: np.ndarray, neck: np.ndarray, top: np.ndarray) -> float:
+        return float(np.abs(v[neck][top, 0] - v[neck, 0].mean()).mean())
+
+    def girth(v: np.ndarray, loop: np.ndarray) -> float:
+        p = v[np.r_[loop, loop[:1]]]
+        return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+    subject = body_model.rest_body("female", NEUTRAL_SHAPE)
+    loose = body_model.rest_body(
+        "female", garment_body_shape(subject.shape, subject.shape_names, (-1.5, -1.5)),
+        extrapolate=True)
+    shoulder_z = subject.joints[JOINT_NAMES.index("left_shoulder"), 2]
+    for name in ("top", "tshirt"):
+        t = _template(str(default_templates_dir()), "female", name)
+        neck, hem = np.asarray(t.loops["neck"]), np.asarray(t.loops["hem"])
+        top = t.vertices[neck, 2] > shoulder_z
+        _, fit = resize(t.vertices, t.faces, subject, subject, subject)
+        _, loose_size = resize(t.vertices, t.faces, subject, subject, loose)
+        _, yoked = resize(t.vertices, t.faces, subject, subject, loose, subject)
+        excess = spread(loose_size, neck, top) - spread(fit, neck, top)
+        assert excess > 0.007, name
+        assert abs(spread(yoked, neck, top) - spread(fit, neck, top)) < min(0.003, excess / 3), name
+        assert girth(yoked, hem) == pytest.approx(girth(loose_size, hem), rel=1e-3), name
+        assert girth(yoked, hem) > 1.08 * girth(fit, hem), name
+
+
+def test_a_loose_jumpsuit_has_a_bodice_as_long_as_the_torso(body_model):
+    """A jumpsuit hangs from its waistband and its straps, so a bodice cut for a taller body
+    leaves the straps slack between the two. Loose in size and girth (-1.5, -1.5), its bodice
+    is as long as the one loose in girth only (0, -1.5): from the waist path to the straps'
+    top within 5 mm (3 mm measured), where the taller size made it 5.8 cm longer; below the
+    waist the legs keep the size's length (16.6 cm longer)."""
+    from datagen.body.anny_model import NEUTRAL_SHAPE
+    from datagen.spec import GarmentSpec
+
+    subject = body_model.rest_body("female", NEUTRAL_SHAPE)
+    garments = (GarmentSpec("upper", "top", "top"), GarmentSpec("lower", "trousers", "trousers"))
+
+    def fitted(tightness, bodice: bool = True):
+        import datagen.garment.resize as resize_module
+
+        saved = resize_module.bodice_tightness
+        if not bodice:
+            resize_module.bodice_tightness = lambda t: None
+        try:
+            (g,) = make_outfit(OutfitSpec(garments, tightness, "jumpsuit"), subject, body_model)
+        finally:
+            resize_module.bodice_tightness = saved
+        rest = g.rest_vertices
+        waist = rest[np.asarray(g.loops["waist"])][:, 2].mean()
+        return rest[:, 2].max() - waist, waist - rest[:, 2].min()
+
+    bodice, legs = fitted((-1.5, -1.5))
+    bodice_girth_only, legs_girth_only = fitted((0.0, -1.5))
+    bodice_unfitted, _ = fitted((-1.5, -1.5), bodice=False)
+    assert bodice == pytest.approx(bodice_girth_only, abs=0.005)
+    assert bodice_unfitted - bodice_girth_only > 0.04
+    assert legs - legs_girth_only > 0.1
+
+
 def test_resizing_changes_edges_smoothly(fitted, body_model):
     """Every shipped template resized to the extreme subjects and to a dozen drawn ones (at their
     tightness): no edge of the resized garment (its rest shape, the size it is cut to) changes

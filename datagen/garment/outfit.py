@@ -252,7 +252,12 @@ def make_outfit(
     (T-pose, as the body model gives it)."""
     from datagen.body.anny_model import NEUTRAL_SHAPE
     from datagen.garment.cutting import cut
-    from datagen.garment.resize import garment_body_shape, resize
+    from datagen.garment.resize import (
+        bodice_tightness,
+        garment_body_shape,
+        resize,
+        yoke_tightness,
+    )
     from datagen.garment.sewing import sew
     from datagen.garment.shaping import shape
     from datagen.garment.template import to_garment
@@ -283,9 +288,24 @@ def make_outfit(
         garment_body_shape(subject.shape, subject.shape_names, outfit.tightness),
         extrapolate=True,
     )
+
+    def body_for(tightness: tuple[float, float] | None) -> RestBody | None:
+        if tightness is None:
+            return None
+        if tightness == (0.0, 0.0):
+            return subject
+        return body_model.rest_body(
+            gender, garment_body_shape(subject.shape, subject.shape_names, tightness),
+            extrapolate=True)
+
+    yoke_body = body_for(yoke_tightness(outfit.tightness))
+    bodice_body = body_for(bodice_tightness(outfit.tightness))
     garments = []
     for spec, t in parts:
-        start, rest = resize(t.vertices, t.faces, template_body, subject, garment_body)
+        # A garment hung from a waistband and the shoulders: its bodice as long as the torso.
+        hung_twice = t.category == "full" and "waist" in t.paths
+        start, rest = resize(t.vertices, t.faces, template_body, subject, garment_body,
+                             yoke_body, bodice_body if hung_twice else None)
         garment = to_garment(t, spec.fabric, spec.name)
         garment.vertices = start
         garment.rest_vertices = rest

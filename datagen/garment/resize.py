@@ -33,6 +33,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
+from datagen.skeleton import JOINT_NAMES
 from datagen.types import RestBody
 
 CLEARANCE = 0.004  # m: starting gap to the subject's skin (the check requires 2 mm)
@@ -52,6 +53,8 @@ GRADING_BAND = 0.15
 GRADING_ROUNDS = 10
 GRADING_WEIGHT_GROWTH = 4.0  # an edge outside the band weighs this much more each round
 GRADING_ANCHOR = 1e-3  # weight that holds each vertex to the transfer (edges weigh 1)
+# The yoke's ramp from the shoulder joints out along the sleeves (yoke_weight).
+YOKE_SLEEVE_RAMP = 0.06  # m
 
 
 def garment_body_shape(
@@ -62,6 +65,26 @@ def garment_body_shape(
     out[names.index(SIZE_PARAMETER)] -= TIGHTNESS_SCALE * tightness[0]
     out[names.index(GIRTH_PARAMETER)] -= TIGHTNESS_SCALE * tightness[1]
     return out
+
+
+def yoke_tightness(tightness: tuple[float, float]) -> tuple[float, float] | None:
+    """The tightness a garment's yoke is cut for, where it differs from the garment's: a loose
+    garment (a negative offset) is loose in its girth and length but cut at the shoulders for
+    the subject, as clothes are (a yoke a size too big sits further out on the shoulders'
+    slope, and a strap top then slides off a moving body: docs/templates.md, "Resizing").
+    None where the garment is nowhere loose."""
+    yoke = (max(float(tightness[0]), 0.0), max(float(tightness[1]), 0.0))
+    return None if yoke == (float(tightness[0]), float(tightness[1])) else yoke
+
+
+def bodice_tightness(tightness: tuple[float, float]) -> tuple[float, float] | None:
+    """The tightness of the bodice of a garment hung from both the shoulders and a waistband
+    (a jumpsuit, a dress), where it differs from the garment's: loose in its girth, but as
+    long as the subject's torso. A bodice cut for a taller body (a negative size offset)
+    leaves its straps slack between the waistband and the shoulders, and nothing then holds
+    them on. None where the garment is not loose in size."""
+    size, girth = float(tightness[0]), float(tightness[1])
+    return None if size >= 0.0 else (0.0, girth)
 
 
 def vertex_neighbours(n_vertices: int, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -102,6 +125,29 @@ def graph_laplacian(n_vertices: int, faces: np.ndarray) -> sp.csr_matrix:
     return (sp.diags(np.asarray(a.sum(axis=1)).ravel()) - a).tocsr()
 
 
+class DisplacementTransfer:
+    """The transfer of body displacements from `source_body` to a garment lying on it, set up
+    once (nearest body points, the screened smoothing's factorised system) and applied to any
+    number of target bodies of the same topology: an outfit's garment goes to the subject, to
+    the size it is cut for and, for a loose garment, to the size of its yoke."""
+
+    def __init__(self, garment: np.ndarray, faces: np.ndarray, source_body: np.ndarray) -> None:
+        tree = cKDTree(source_body)
+        dist, self._idx = tree.query(garment, k=NEIGHBOURS)
+        w = 1.0 / np.maximum(dist, 1e-4) ** 2
+        self._weights = w / w.sum(axis=1, keepdims=True)
+        self._follow = 1.0 / (1.0 + (dist[:, 0] / FOLLOW_DISTANCE) ** 2)
+        self._source = source_body
+        system = sp.diags(self._follow) + SMOOTHING * graph_laplacian(len(garment), faces)
+        self._solve = _spd_solver(system)
+
+    def to(self, target_body: np.ndarray) -> np.ndarray:
+        """(V, 3) each garment vertex's displacement towards `target_body`."""
+        idx = self._idx
+        body_disp = np.einsum("vk,vkd->vd", self._weights, target_body[idx] - self._source[idx])
+        return self._solve(self._follow[:, None] * body_disp)
+
+
 def transfer_displacement(
     garment: np.ndarray, faces: np.ndarray, source_body: np.ndarray, target_body: np.ndarray
 ) -> np.ndarray:
@@ -109,14 +155,42 @@ def transfer_displacement(
     garment: minimises sum_i c_i |d_i - b_i|^2 + SMOOTHING * sum_edges |d_i - d_j|^2, where b_i
     is the body points' displacement and c_i = 1 / (1 + (distance to the skin /
     FOLLOW_DISTANCE)^2) says how much the vertex follows its body point."""
-    tree = cKDTree(source_body)
-    dist, idx = tree.query(garment, k=NEIGHBOURS)
-    w = 1.0 / np.maximum(dist, 1e-4) ** 2
-    w /= w.sum(axis=1, keepdims=True)
-    body_disp = np.einsum("vk,vkd->vd", w, target_body[idx] - source_body[idx])
-    follow = 1.0 / (1.0 + (dist[:, 0] / FOLLOW_DISTANCE) ** 2)
-    system = sp.diags(follow) + SMOOTHING * graph_laplacian(len(garment), faces)
-    return _spd_solver(system)(follow[:, None] * body_disp)
+    return DisplacementTransfer(garment, faces, source_body).to(target_body)
+
+
+def _smoothstep(t: np.ndarray) -> np.ndarray:
+    t = np.clip(t, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def yoke_weight(garment: np.ndarray, body: RestBody) -> np.ndarray:
+    """(V,) per vertex of a garment lying on `body` (T-pose), 1 on its yoke (over the
+    shoulders and around the neck, what the garment hangs from) and 0 below the chest and
+    along the sleeves, with smooth ramps between: upwards from the chest joint to the
+    shoulder joints' height, sideways over YOKE_SLEEVE_RAMP beyond the shoulder joints."""
+    j = body.joints
+    chest = j[JOINT_NAMES.index("spine3")]
+    shoulders = j[[JOINT_NAMES.index("left_shoulder"), JOINT_NAMES.index("right_shoulder")]]
+    centre_x = j[JOINT_NAMES.index("neck"), 0]
+    shoulder_z = float(shoulders[:, 2].mean())
+    half_width = float(np.abs(shoulders[:, 0] - centre_x).mean())
+    up = _smoothstep((garment[:, 2] - chest[2]) / max(shoulder_z - chest[2], 1e-3))
+    inside = 1.0 - _smoothstep((np.abs(garment[:, 0] - centre_x) - half_width)
+                               / YOKE_SLEEVE_RAMP)
+    return up * inside
+
+
+def bodice_weight(garment: np.ndarray, body: RestBody) -> np.ndarray:
+    """(V,) per vertex of a garment lying on `body` (T-pose), 1 above the waist (the spine
+    joint above the pelvis) and 0 below the pelvis joint, with a smooth ramp between."""
+    j = body.joints
+    low, high = j[JOINT_NAMES.index("pelvis"), 2], j[JOINT_NAMES.index("spine1"), 2]
+    return _smoothstep((garment[:, 2] - low) / max(high - low, 1e-3))
+
+
+def _aligned(body: RestBody, joint: str, to: np.ndarray) -> np.ndarray:
+    """`body`'s vertices moved so that its `joint` lies at `to`."""
+    return body.vertices + (to - body.joints[JOINT_NAMES.index(joint)])
 
 
 def grade(template_vertices: np.ndarray, resized: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -302,15 +376,28 @@ def resize(
     template_body: RestBody,
     subject: RestBody,
     garment_body: RestBody,
+    yoke_body: RestBody | None = None,
+    bodice_body: RestBody | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(starting positions, rest shape) of a template garment resized to `subject`, made for
-    `garment_body` (the subject with the tightness offsets)."""
-    src = template_body.vertices
-    start = template_vertices + transfer_displacement(
-        template_vertices, faces, src, subject.vertices
-    )
-    rest = grade(template_vertices, template_vertices + transfer_displacement(
-        template_vertices, faces, src, garment_body.vertices
-    ), faces)
+    `garment_body` (the subject with the tightness offsets). Where given, `bodice_body` is the
+    size of the part above the waist (bodice_weight, bodice_tightness) and `yoke_body` the
+    size of the yoke (yoke_weight, yoke_tightness)."""
+    transfer = DisplacementTransfer(template_vertices, faces, template_body.vertices)
+    start = template_vertices + transfer.to(subject.vertices)
+    size = transfer.to(garment_body.vertices)
+    # Each finer size meets the one it is blended into at a joint of both (the waist, the
+    # neck), so the larger size's extra length goes below it, not into the ramp between them.
+    neck = garment_body.joints[JOINT_NAMES.index("neck")]
+    if bodice_body is not None:
+        waist = garment_body.joints[JOINT_NAMES.index("spine1")]
+        weight = bodice_weight(template_vertices, template_body)[:, None]
+        size += weight * (transfer.to(_aligned(bodice_body, "spine1", waist)) - size)
+        neck = bodice_body.joints[JOINT_NAMES.index("neck")] + (
+            waist - bodice_body.joints[JOINT_NAMES.index("spine1")])
+    if yoke_body is not None:
+        weight = yoke_weight(template_vertices, template_body)[:, None]
+        size += weight * (transfer.to(_aligned(yoke_body, "neck", neck)) - size)
+    rest = grade(template_vertices, template_vertices + size, faces)
     start = push_out(start, faces, subject)
     return start, rest
