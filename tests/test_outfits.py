@@ -203,7 +203,7 @@ def test_a_loose_garment_is_cut_for_the_subject_at_the_yoke(body_model):
         assert girth(yoked, hem) > 1.08 * girth(fit, hem), name
 
 
-def test_a_loose_jumpsuit_has_a_bodice_as_long_as_the_torso(body_model):
+def test_a_loose_jumpsuit_has_a_bodice_as_long_as_the_torso(body_model, monkeypatch):
     """A jumpsuit hangs from its waistband and its straps, so a bodice cut for a taller body
     leaves the straps slack between the two. Loose in size and girth (-1.5, -1.5), its bodice
     is as long as the one loose in girth only (0, -1.5): from the waist path to the straps'
@@ -216,15 +216,10 @@ def test_a_loose_jumpsuit_has_a_bodice_as_long_as_the_torso(body_model):
     garments = (GarmentSpec("upper", "top", "top"), GarmentSpec("lower", "trousers", "trousers"))
 
     def fitted(tightness, bodice: bool = True):
-        import datagen.garment.resize as resize_module
-
-        saved = resize_module.bodice_tightness
-        if not bodice:
-            resize_module.bodice_tightness = lambda t: None
-        try:
+        with monkeypatch.context() as patch:
+            if not bodice:
+                patch.setattr("datagen.garment.resize.bodice_tightness", lambda t: None)
             (g,) = make_outfit(OutfitSpec(garments, tightness, "jumpsuit"), subject, body_model)
-        finally:
-            resize_module.bodice_tightness = saved
         rest = g.rest_vertices
         waist = rest[np.asarray(g.loops["waist"])][:, 2].mean()
         return rest[:, 2].max() - waist, waist - rest[:, 2].min()

@@ -188,9 +188,9 @@ def bodice_weight(garment: np.ndarray, body: RestBody) -> np.ndarray:
     return _smoothstep((garment[:, 2] - low) / max(high - low, 1e-3))
 
 
-def _aligned(body: RestBody, joint: str, to: np.ndarray) -> np.ndarray:
-    """`body`'s vertices moved so that its `joint` lies at `to`."""
-    return body.vertices + (to - body.joints[JOINT_NAMES.index(joint)])
+def _offset_to(body: RestBody, joint: str, to: np.ndarray) -> np.ndarray:
+    """(3,) the translation that moves `body`'s `joint` to `to`."""
+    return to - body.joints[JOINT_NAMES.index(joint)]
 
 
 def grade(template_vertices: np.ndarray, resized: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -390,14 +390,14 @@ def resize(
     # neck), so the larger size's extra length goes below it, not into the ramp between them.
     neck = garment_body.joints[JOINT_NAMES.index("neck")]
     if bodice_body is not None:
-        waist = garment_body.joints[JOINT_NAMES.index("spine1")]
+        shift = _offset_to(bodice_body, "spine1", garment_body.joints[JOINT_NAMES.index("spine1")])
         weight = bodice_weight(template_vertices, template_body)[:, None]
-        size += weight * (transfer.to(_aligned(bodice_body, "spine1", waist)) - size)
-        neck = bodice_body.joints[JOINT_NAMES.index("neck")] + (
-            waist - bodice_body.joints[JOINT_NAMES.index("spine1")])
+        size += weight * (transfer.to(bodice_body.vertices + shift) - size)
+        neck = bodice_body.joints[JOINT_NAMES.index("neck")] + shift
     if yoke_body is not None:
+        shift = _offset_to(yoke_body, "neck", neck)
         weight = yoke_weight(template_vertices, template_body)[:, None]
-        size += weight * (transfer.to(_aligned(yoke_body, "neck", neck)) - size)
+        size += weight * (transfer.to(yoke_body.vertices + shift) - size)
     rest = grade(template_vertices, template_vertices + size, faces)
     start = push_out(start, faces, subject)
     return start, rest
