@@ -1,12 +1,22 @@
 """The folding parts' distance fields (datagen.sim.fold_fields): frames, values, blob layout."""
 
-from __future__ import annotations
-
 import numpy as np
+import taichi as ti
 from scipy.spatial.transform import Rotation
 
 from datagen.sim import fold_fields as FF
+from datagen.sim import kernels as K
+from datagen.sim.precision import NP_REAL, REAL, VEC3
 from datagen.sim.scenes import icosphere
+
+
+@ti.kernel
+def _look_up(points: K.V3, part: REAL, normal: VEC3, s_frame: REAL, fold: K.F1, reach: REAL,
+             out: K.V3):
+    """kernels.fold_near at each point, as the part guard asks it of a tracked vertex. (Taichi
+    reads the annotations: this module has no `from __future__ import annotations`.)"""
+    for i in points:
+        out[i] = K.fold_near(points[i], part, normal, s_frame, fold, 0, reach, VEC3(0.0))
 
 
 def _ball_and_plate(n_frames: int = 8):
@@ -56,7 +66,7 @@ def test_a_fields_values_are_the_distance_to_its_part_in_the_parts_own_frame():
     # The values: grid points' signed distance to the ball (negative inside), both ends side by
     # side; the ball in its own frame is the same ball, so both ends agree.
     dims = blob[h + FF.H_DIMS:h + FF.H_DIMS + 3].astype(int)
-    origin = blob[h + FF.H_ORIGIN:h + FF.H_ORIGIN + 3]
+    origin = blob[h + FF.H_ORIGIN:h + FF.H_ORIGIN + 3] * FF.FIELD_CELL  # stored in cells
     data = blob[int(blob[h + FF.H_DATA]):][:2 * dims.prod()].reshape(*dims, 2)
     axes = [origin[d] + np.arange(dims[d]) / blob[h + FF.H_INV_CELL] for d in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
@@ -125,7 +135,7 @@ def test_a_fields_grid_holds_its_part_with_the_margin_in_every_frame_a_blob_samp
         if blob is None:
             continue
         h = FF.header(blob, 0)  # the ball's
-        origin = blob[h + FF.H_ORIGIN:h + FF.H_ORIGIN + 3]
+        origin = blob[h + FF.H_ORIGIN:h + FF.H_ORIGIN + 3] * FF.FIELD_CELL
         top = origin + (blob[h + FF.H_DIMS:h + FF.H_DIMS + 3] - 1) * FF.FIELD_CELL
         for f in (f0, f0 + 1):
             local = fields._fit(0, f)[2]
@@ -133,3 +143,67 @@ def test_a_fields_grid_holds_its_part_with_the_margin_in_every_frame_a_blob_samp
             assert np.all(local.max(axis=0) <= top - FF.FIELD_MARGIN + 1e-9), (f0, f)
             sampled += 1
     assert sampled == 8  # f0 = 1 .. 4, both ends
+
+
+def test_a_frames_fields_do_not_depend_on_folds_later_in_the_sequence():
+    """A part's grid spans every frame it is sampled in, so a fold later in the sequence
+    widens it. The grid lies on the FIELD_CELL lattice in the part's frame (its first point
+    stored in whole cells): a frame's grid points, and so its values, are the same bit for bit
+    whether or not the sequence goes on to that fold, and a sequence cut short simulates as
+    the long one's prefix. Here the ball folds at frame 3, and in the long sequence again at
+    frame 7, where it has swollen by 40 % (as skinning swells a part about its joint)."""
+    frames, faces, parts, centres, _ = _ball_and_plate(10)
+    n_ball = len(frames[0]) - 4
+    for f in (6, 7, 8, 9):
+        frames[f, :n_ball] = (frames[f, :n_ball] - centres[f]) * 1.4 + centres[f]
+    names = {"ball": 0, "plate": 1}
+    short = FF.FoldFields(frames[:6], faces, parts, [(("ball",), ("plate",), frozenset({3}))],
+                          names)
+    long = FF.FoldFields(frames, faces, parts, [(("ball",), ("plate",), frozenset({3, 7}))],
+                         names)
+
+    def grid(fields, f0):
+        blob = fields.blob(f0, f0 + 1)
+        h = FF.header(blob, 0)  # the ball's
+        first = blob[h + FF.H_ORIGIN:h + FF.H_ORIGIN + 3]
+        dims = blob[h + FF.H_DIMS:h + FF.H_DIMS + 3].astype(int)
+        data = blob[int(blob[h + FF.H_DATA]):][:2 * dims.prod()].reshape(*dims, 2)
+        return first.astype(int), dims, data
+
+    for f0 in (1, 2, 3):
+        first_s, dims_s, data_s = grid(short, f0)
+        first_l, dims_l, data_l = grid(long, f0)
+        assert np.all(first_l <= first_s) and np.all(first_l + dims_l >= first_s + dims_s)
+        assert np.any(dims_l > dims_s)  # the swollen ball widened the long sequence's grid
+        at = first_s - first_l  # the short grid's points in the long one
+        inner = data_l[at[0]:at[0] + dims_s[0], at[1]:at[1] + dims_s[1], at[2]:at[2] + dims_s[2]]
+        np.testing.assert_array_equal(inner, data_s)
+
+    # The guard's lookup (kernels.fold_near) for a vertex on the plate: whether the ball's
+    # facing surface is near, and where it is not, how much farther it is. Inside the short
+    # grid both answers agree bit for bit; beyond it the long grid reads the distance where
+    # the short one bounds it, but neither finds the ball there.
+    from datagen.sim.backend import init_taichi
+
+    init_taichi()
+    rng = np.random.default_rng(7)
+    rot, centre, _ = short._fit(0, 2)  # the ball's frame at frame 2, where s_frame is 0
+    local = rng.uniform(-0.2, 0.2, (4000, 3))
+    points = (centre + local @ rot.T).astype(NP_REAL)
+    answers = []
+    for fields in (short, long):
+        blob = fields.blob(2, 3).astype(NP_REAL)
+        fold, at, out = ti.ndarray(REAL, len(blob)), ti.ndarray(VEC3, len(points)), (
+            ti.ndarray(VEC3, len(points)))
+        fold.from_numpy(blob)
+        at.from_numpy(points)
+        _look_up(at, 1.0, ti.math.vec3(0.0, 0.0, 1.0), 0.0, fold, 0.025, out)
+        answers.append(out.to_numpy())
+    (found_s, budget_s, _), (found_l, budget_l, _) = (a.T for a in answers)
+    np.testing.assert_array_equal(found_s, found_l)
+    assert 50 < found_s.sum() < len(points) / 2  # the ball's underside is near some of them
+    first, dims, _ = grid(short, 2)
+    cells = np.floor(local / FF.FIELD_CELL) - first
+    inside = np.all((cells >= 0) & (cells < dims - 1), axis=1)
+    assert inside.sum() > len(points) / 4
+    np.testing.assert_array_equal(budget_s[inside], budget_l[inside])

@@ -56,9 +56,10 @@ def fields_at(n_slots: int) -> int:
     return B_TABLES + 3 * n_slots
 
 
-# Per field: its part, the grid (origin, 1 / cell, dimensions), the frame's two ends (rotation
-# as a quaternion, centre), the centre's motion over the frame, the most any of the part's
-# vertices moves relative to it, and where its data starts.
+# Per field: its part, the grid (its first point in cells of the FIELD_CELL lattice, integers;
+# 1 / cell; dimensions), the frame's two ends (rotation as a quaternion, centre), the centre's
+# motion over the frame, the most any of the part's vertices moves relative to it, and where
+# its data starts.
 (H_PART, H_ORIGIN, H_INV_CELL, H_DIMS, H_Q0, H_C0, H_Q1, H_C1, H_SHIFT, H_TRAVEL, H_DATA) = (
     0, 1, 4, 5, 8, 12, 15, 19, 22, 25, 26)
 HEADER = 27
@@ -124,8 +125,11 @@ class FoldFields:
                       if 0 <= f < n_frames}:
                 for p in a + b:
                     sampled[parts.index(p)].add(f)
-        # A fixed grid per part over every frame's surface it is sampled in, in its own frame.
-        self.boxes = []
+        # A fixed grid per part over every frame's surface it is sampled in, in its own frame,
+        # on the FIELD_CELL lattice there: a point's eight neighbours and their values are then
+        # the same whatever frames widen the box, so a frame's lookups do not depend on folds
+        # later in the sequence (a sequence cut short is the long one's prefix).
+        self.boxes: list[tuple[np.ndarray, np.ndarray]] = []  # (first point in cells, dims)
         for k in range(len(parts)):
             lo = np.full(3, np.inf)
             hi = np.full(3, -np.inf)
@@ -133,10 +137,9 @@ class FoldFields:
                 local = self._fit(k, f)[2]
                 lo = np.minimum(lo, local.min(axis=0))
                 hi = np.maximum(hi, local.max(axis=0))
-            lo -= FIELD_MARGIN
-            hi += FIELD_MARGIN
-            dims = np.ceil((hi - lo) / FIELD_CELL).astype(np.int64) + 1
-            self.boxes.append((lo, dims))
+            first = np.floor((lo - FIELD_MARGIN) / FIELD_CELL).astype(np.int64)
+            last = np.ceil((hi + FIELD_MARGIN) / FIELD_CELL).astype(np.int64)
+            self.boxes.append((first, last - first + 1))
         self._cache: OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = (
             OrderedDict())
 
@@ -157,8 +160,9 @@ class FoldFields:
             self._cache.move_to_end(key)
             return self._cache[key]
         rot, c_cur, local = self._fit(k, f)
-        lo, dims = self.boxes[k]
-        axes = [lo[d] + FIELD_CELL * np.arange(dims[d]) for d in range(3)]
+        first, dims = self.boxes[k]
+        # Integer lattice indices times the cell: a point's coordinates are the same in any box.
+        axes = [FIELD_CELL * (first[d] + np.arange(dims[d])) for d in range(3)]
         grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
         sd, *_ = igl.signed_distance(grid, np.ascontiguousarray(local),
                                      np.ascontiguousarray(self.tris[k]),
@@ -197,10 +201,10 @@ class FoldFields:
         for k in fields:
             a = self._sample(k, f0)
             b = self._sample(k, f1)
-            lo, dims = self.boxes[k]
+            first, dims = self.boxes[k]
             h = np.zeros(HEADER)
             h[H_PART] = self.parts[k]
-            h[H_ORIGIN:H_ORIGIN + 3] = lo
+            h[H_ORIGIN:H_ORIGIN + 3] = first
             h[H_INV_CELL] = 1.0 / FIELD_CELL
             h[H_DIMS:H_DIMS + 3] = dims
             h[H_Q0:H_Q0 + 4] = a[0]

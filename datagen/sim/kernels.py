@@ -1703,12 +1703,18 @@ def fold_near(p: vec3, part: REAL, nb: vec3, s_frame: REAL, fold: F1, at: ti.i32
             c = c + (vec3(fold[h + FF.H_C1], fold[h + FF.H_C1 + 1], fold[h + FF.H_C1 + 2])
                      - c) * s_frame
             y = rot.transpose() @ (p - c)
-            o = vec3(fold[h + FF.H_ORIGIN], fold[h + FF.H_ORIGIN + 1], fold[h + FF.H_ORIGIN + 2])
-            g = (y - o) * fold[h + FF.H_INV_CELL]
+            # Lattice coordinates first, the grid's first point subtracted in integers: the
+            # cell and its weights t are the same however far the grid reaches.
+            lattice = y * fold[h + FF.H_INV_CELL]
+            cell = ti.cast(ti.floor(lattice), ti.i32)
+            first = ti.math.ivec3(ti.cast(fold[h + FF.H_ORIGIN], ti.i32),
+                                  ti.cast(fold[h + FF.H_ORIGIN + 1], ti.i32),
+                                  ti.cast(fold[h + FF.H_ORIGIN + 2], ti.i32))
+            i0 = cell - first
+            g = lattice - ti.cast(first, REAL)
             nx = ti.cast(fold[h + FF.H_DIMS], ti.i32)
             ny = ti.cast(fold[h + FF.H_DIMS + 1], ti.i32)
             nz = ti.cast(fold[h + FF.H_DIMS + 2], ti.i32)
-            i0 = ti.cast(ti.floor(g), ti.i32)
             top = vec3(ti.cast(nx - 1, REAL), ti.cast(ny - 1, REAL), ti.cast(nz - 1, REAL))
             if (i0[0] < 0 or i0[0] >= nx - 1 or i0[1] < 0 or i0[1] >= ny - 1
                     or i0[2] < 0 or i0[2] >= nz - 1):
@@ -1716,7 +1722,7 @@ def fold_near(p: vec3, part: REAL, nb: vec3, s_frame: REAL, fold: F1, at: ti.i32
                 out = ti.max(-g, 0.0, g - top).norm() / fold[h + FF.H_INV_CELL]
                 budget = ti.min(budget, out + FF.FIELD_MARGIN - reach + FOLD_TRIGGER)
             else:
-                t = g - ti.cast(i0, REAL)
+                t = lattice - ti.cast(cell, REAL)
                 data = at + ti.cast(fold[h + FF.H_DATA], ti.i32)
                 d = ti.cast(0.0, REAL)
                 grad = vec3(0.0)
