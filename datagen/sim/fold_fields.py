@@ -16,7 +16,8 @@ question "how near is a folding part's surface" is one rigid transform and one t
 - a frame's fields are those of the joints folding in or just after it (FOLD_LEAD_FRAMES), so
   a running arm's bent elbows cost its legs nothing;
 - in that frame, the part's own triangles are sampled once per body frame as a signed distance
-  (pseudonormal sign; the patch is open at the joint) on a fixed grid per part (FIELD_CELL), and
+  (pseudonormal sign; the patch is open at the joint) on a fixed grid per part, on the lattice
+  of FIELD_CELL in its own frame (so that a frame's values do not depend on later folds), and
   within a frame the two ends' values are interpolated linearly. Skinning's deviation from the
   rigid motion near the joint (5-10 cm) is in the sampled surface, not in the transform.
 
