@@ -93,3 +93,17 @@ def user_errors(func):
             sys.exit(2)
 
     return wrapper
+
+
+class BoundBroken(RejectedSequence):
+    """A run stopped at the first output frame whose QA broke a bound the dataset's gate holds
+    it to (qa.breaches; the simulator's bound guard, SimOptions.bound_guard): stage "qa". Its
+    own type, because the escalation ladder simulates it again at finer steps, as it does a
+    finished run over a bound (pipeline.stages)."""
+
+    def __init__(self, reason: str, frames: tuple[int, int] | None = None,
+                 runs: int = 1) -> None:
+        super().__init__("qa", reason, frames, runs)
+
+    def __reduce__(self):
+        return (BoundBroken, (self.reason, self.frames, self.runs))

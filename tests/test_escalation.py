@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from datagen import qa
-from datagen.errors import RejectedSequence
+from datagen.errors import BoundBroken, RejectedSequence
 from datagen.pipeline.stages import (
     SequenceRecord,
     mark_rejected,
@@ -172,6 +172,67 @@ def test_escalation_climbs_until_a_run_keeps_its_bounds(monkeypatch):
                                                 "xpbd default 20x4, sor 1"]
     assert result.report["escalated_from"] == dropped[0]
     assert all("qa/over_strain_share" in d["reason"] and d["wall_time_s"] > 0 for d in dropped)
+
+
+def _first_frame_over(garments, track, options) -> int:
+    """The first output frame at which an unguarded run at `options` breaks a bound."""
+    series = simulate(garments, track, options).qa["over_strain_share"]
+    assert (series > qa.STRAIN_SHARE_MAX).any()
+    return int(np.argmax(series > qa.STRAIN_SHARE_MAX))
+
+
+def test_a_guarded_run_stops_at_its_first_frame_over_a_bound_and_climbs_the_same_ladder(
+        monkeypatch):
+    """Where the gate rejects a sequence over a bound (a dataset run), the simulator stops a
+    run at its first output frame over one (SimOptions.bound_guard): the ladder would simulate
+    it again whatever followed. At the 1.2 % bound the draft and default runs are over it and
+    the reference run within: guarded, the same three rungs, each dropped run stopped at the
+    first frame its unguarded twin went over, and the kept run the same bit for bit."""
+    garments, track = _sheet_on_sphere(monkeypatch, 0.012)
+    options = SimOptions(quality="draft", settle_seconds=0.0, strain_refinements=0)
+    plain = simulate_within_bounds(garments, track, options)
+    calls = _counting_simulate(monkeypatch)
+    guarded = simulate_within_bounds(garments, track, replace(options, bound_guard=True))
+    assert [c.quality for c in calls] == ["draft", "default", "reference"]
+    firsts = [_first_frame_over(garments, track, replace(c, bound_guard=False))
+              for c in calls[:2]]
+    with pytest.raises(BoundBroken) as info:  # the simulator's own: its type crosses processes
+        simulate(garments, track, calls[0])
+    assert info.value.stage == "qa" and info.value.frames == (firsts[0], firsts[0])
+    back = pickle.loads(pickle.dumps(info.value))
+    assert isinstance(back, BoundBroken) and back.reason == info.value.reason
+    np.testing.assert_array_equal(guarded.vertices[garments[0].name],
+                                  plain.vertices[garments[0].name])
+    dropped = guarded.report["escalations"]
+    assert [d["settings"] for d in dropped] == ["xpbd draft 10x2, sor 1.6",
+                                                "xpbd default 20x4, sor 1"]
+    for d, first in zip(dropped, firsts, strict=True):
+        assert first < 29  # stopped before the end
+        assert re.search(rf"qa/over_strain_share [0-9.]+ at frame {first}, bound 0\.001\); "
+                         r"the run stopped there$", d["reason"]), d["reason"]
+
+
+def test_a_guarded_sequence_over_its_bound_on_every_rung_is_rejected_naming_every_run(
+        monkeypatch):
+    """Guarded, the sequence that every rung breaks (below, at the 0.6 % bound) is rejected at
+    the stage "qa" after the same four runs, each stopped at its first frame over the bound."""
+    garments, track = _sheet_on_sphere(monkeypatch, 0.006)
+    calls = _counting_simulate(monkeypatch)
+    options = SimOptions(quality="draft", settle_seconds=0.0, strain_refinements=0,
+                         bound_guard=True)
+    with pytest.raises(RejectedSequence) as caught:
+        simulate_within_bounds(garments, track, options)
+    assert [(c.quality, c.substeps) for c in calls] == [
+        ("draft", None), ("default", None), ("reference", None), ("reference", 80)]
+    exc = caught.value
+    assert exc.stage == "qa" and exc.runs == 4
+    assert exc.reason.startswith(
+        "fabric springs strained beyond their fabric's max_strain (qa/over_strain_share ")
+    assert exc.reason.count("the run stopped there") == 4
+    assert "; simulated again at reference 80x16, sor 1, after the runs at xpbd draft 10x2" \
+        in exc.reason
+    last = _first_frame_over(garments, track, replace(calls[-1], bound_guard=False))
+    assert exc.frames == (last, last)
 
 
 def test_a_sequence_over_its_bound_on_every_rung_is_rejected_naming_every_run(monkeypatch):

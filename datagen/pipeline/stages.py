@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from datagen.environment import environment
-from datagen.errors import RejectedSequence, SlidOffShoulders
+from datagen.errors import BoundBroken, RejectedSequence, SlidOffShoulders
 from datagen.recipe import BodyConfig
 from datagen.spec import SceneSpec
 from datagen.types import BodySequence, Garment, Motion, SimResult
@@ -53,14 +53,16 @@ class SequenceRecord:
 def sim_options_from_spec(spec: SceneSpec, fabrics: dict | None = None,
                           neckline_guard: bool = False):
     """The simulator's options for a scene; `neckline_guard` where the caller rejects a
-    sequence whose garment slid off the shoulders (SimOptions.neckline_guard)."""
+    sequence whose garment slid off the shoulders or broke a QA bound: its runs stop at the
+    first such frame (SimOptions.neckline_guard and bound_guard)."""
     from datagen.sim.simulate import SimOptions
 
     s = spec.simulation
     return SimOptions(solver=s.solver, quality=s.quality, substeps=s.substeps,
                       iterations=s.iterations, effects=s.effects,
                       wind=tuple(s.wind) if s.wind else None, fabrics=dict(fabrics or {}),
-                      settle_seconds=s.settle_seconds, neckline_guard=neckline_guard)
+                      settle_seconds=s.settle_seconds, neckline_guard=neckline_guard,
+                      bound_guard=neckline_guard)
 
 
 def run_sequence(
@@ -189,17 +191,22 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
                 raise outcome
             sim = simulate(garments, body, current) if outcome is None else outcome
         except RejectedSequence as exc:
+            reason = exc.reason
             if isinstance(exc, SlidOffShoulders):
                 up = current.escalated()  # up the presets, not past the top (docstring)
+            elif isinstance(exc, BoundBroken):
+                # Stopped at its first frame over a bound (SimOptions.bound_guard): up the
+                # ladder as a finished run over it would go, the frame's overlap noted.
+                reason += flexion_overlap_note(body, [exc.frames[0]])
             elif exc.stage != "simulate":
                 up = None
             if up is None:
-                if not dropped:
+                if not dropped and reason == exc.reason:
                     raise
-                raise RejectedSequence(exc.stage, exc.reason + _runs_note(
-                    current.steps_label(fps), dropped), exc.frames,
+                raise RejectedSequence(exc.stage, reason + (_runs_note(
+                    current.steps_label(fps), dropped) if dropped else ""), exc.frames,
                     runs=len(dropped) + 1) from None
-            dropped.append({"settings": settings, "reason": exc.reason, "wall_time_s": None})
+            dropped.append({"settings": settings, "reason": reason, "wall_time_s": None})
         else:
             found = qa.breaches(sim.qa)
             if not found:

@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from datagen.errors import InputError, RejectedSequence, SlidOffShoulders
+from datagen.errors import BoundBroken, InputError, RejectedSequence, SlidOffShoulders
 from datagen.qa import STRAIN_SHARE_MAX, Breach
 from datagen.sim import backend
 from datagen.sim.collider import BodyCollider, frame_tangents
@@ -163,6 +163,12 @@ class SimOptions:
     # a run whatever follows, so its remaining frames would be spent for nothing. Dataset runs
     # whose recipe rejects (simulation.qa) set it; a scene simulated to look at runs to its end.
     neckline_guard: bool = False
+    # Stop a run at the first output frame whose QA breaks a bound (qa.breaches: cloth deeper
+    # in the body than its thickness, springs past their fabric's strain bound), raising
+    # BoundBroken: the escalation ladder simulates such a run again at finer steps whatever
+    # follows, and the gate rejects it at the last rung. Set with neckline_guard; inert in a
+    # batch of scenes (one scene's breach must not stop the others).
+    bound_guard: bool = False
 
     def resolve_steps(self, fps: float = PRESET_FPS) -> tuple[int, int]:
         """(substeps per frame, iterations) at output rate `fps`: the caller's, else the
@@ -819,6 +825,15 @@ class _Simulation:
         strain = self._strain(x)
         flags = None if sd is None else (sd < 0.0, sd < -self.model.thickness)
         qa_rows.append([_qa(self.model, p, v, flags, strain) for p in self.parts])
+        if self.options.bound_guard and len(self.parts) == 1:
+            from datagen import qa
+
+            frame = len(qa_rows) - 1
+            found = [replace(b, frame=frame) for b in qa.breaches(
+                {k: np.array([value]) for k, value in qa_rows[-1][0].items()})]
+            if found:
+                raise BoundBroken("; ".join(b.reason for b in found) + "; the run stopped there",
+                                  (frame, frame))
 
     def _result(self, outputs, qa_rows, setup: float, frames: float, settle) -> SimResult:
         costs: dict[str, float] = {}
