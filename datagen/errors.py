@@ -65,18 +65,23 @@ class RejectedSequence(DatagenError):
         return (RejectedSequence, (self.stage, self.reason, self.frames, self.runs))
 
 
-class SlidOffShoulders(RejectedSequence):
-    """A run stopped where a garment's neckline had slid off the shoulders (the simulator's
-    neckline guard, SimOptions.neckline_guard): stage "qa", as the dataset's gate rejects such
-    a sequence. Its own type, because the escalation ladder treats it apart from the bounds
-    that the next rung past the top preset can still resolve (pipeline.stages)."""
+class StoppedRun(RejectedSequence):
+    """A run the simulator stopped at the first output frame that the dataset's gate rejects
+    (its guards, SimOptions.neckline_guard and bound_guard): stage "qa". Each guard raises a
+    type of its own, which the escalation ladder treats in its own way (pipeline.stages)."""
 
     def __init__(self, reason: str, frames: tuple[int, int] | None = None,
                  runs: int = 1) -> None:
         super().__init__("qa", reason, frames, runs)
 
     def __reduce__(self):
-        return (SlidOffShoulders, (self.reason, self.frames, self.runs))
+        return (type(self), (self.reason, self.frames, self.runs))
+
+
+class SlidOffShoulders(StoppedRun):
+    """A run stopped where a garment's neckline had slid off the shoulders (the neckline
+    guard). The ladder treats it apart from the bounds that the next rung past the top preset
+    can still resolve."""
 
 
 def user_errors(func):
@@ -95,15 +100,7 @@ def user_errors(func):
     return wrapper
 
 
-class BoundBroken(RejectedSequence):
-    """A run stopped at the first output frame whose QA broke a bound the dataset's gate holds
-    it to (qa.breaches; the simulator's bound guard, SimOptions.bound_guard): stage "qa". Its
-    own type, because the escalation ladder simulates it again at finer steps, as it does a
-    finished run over a bound (pipeline.stages)."""
-
-    def __init__(self, reason: str, frames: tuple[int, int] | None = None,
-                 runs: int = 1) -> None:
-        super().__init__("qa", reason, frames, runs)
-
-    def __reduce__(self):
-        return (BoundBroken, (self.reason, self.frames, self.runs))
+class BoundBroken(StoppedRun):
+    """A run stopped at the first output frame whose QA broke a bound (qa.breaches; the bound
+    guard). The ladder simulates it again at finer steps, as it does a finished run over a
+    bound."""

@@ -283,21 +283,19 @@ def make_outfit(
         )
         parts = [(spec, sewn_t)]
     template_body = body_model.rest_body(gender, NEUTRAL_SHAPE)
-    garment_body = body_model.rest_body(
-        gender,
-        garment_body_shape(subject.shape, subject.shape_names, outfit.tightness),
-        extrapolate=True,
-    )
 
-    def body_for(tightness: tuple[float, float] | None) -> RestBody | None:
-        if tightness is None:
-            return None
-        if tightness == (0.0, 0.0):
-            return subject
+    def sized(tightness: tuple[float, float]) -> RestBody:
+        """The body a garment of that tightness is cut for (the subject with the offsets)."""
         return body_model.rest_body(
             gender, garment_body_shape(subject.shape, subject.shape_names, tightness),
             extrapolate=True)
 
+    def body_for(tightness: tuple[float, float] | None) -> RestBody | None:
+        if tightness is None:
+            return None
+        return subject if tightness == (0.0, 0.0) else sized(tightness)
+
+    garment_body = sized(outfit.tightness)
     yoke_body = body_for(yoke_tightness(outfit.tightness))
     bodice_body = body_for(bodice_tightness(outfit.tightness))
     garments = []

@@ -80,8 +80,9 @@ def run_sequence(
     """Run one sequence end to end. A RejectedSequence becomes a rejected record; any other
     error propagates (it is a bug or bad input, not a property of the scene). The hooks alter
     the motion or the fitted garments on their way (the hard cases inject faults with them).
-    `neckline_guard`: stop a run whose garment slid off the shoulders at that frame
-    (SimOptions.neckline_guard), where the caller's gate rejects such a sequence."""
+    `neckline_guard`: stop a run at the first frame where its garment slid off the shoulders
+    or its QA broke a bound (SimOptions.neckline_guard and bound_guard), where the caller's
+    gate rejects such a sequence."""
     from datagen.body.sequence import build_body_sequence
     from datagen.garment.outfit import dropped_parts_for, make_outfit
     from datagen.motion.load import motion_from_spec
@@ -190,23 +191,25 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
             if isinstance(outcome, RejectedSequence):
                 raise outcome
             sim = simulate(garments, body, current) if outcome is None else outcome
-        except RejectedSequence as exc:
-            reason = exc.reason
+        except RejectedSequence as caught:
+            exc = caught
             if isinstance(exc, SlidOffShoulders):
                 up = current.escalated()  # up the presets, not past the top (docstring)
             elif isinstance(exc, BoundBroken):
                 # Stopped at its first frame over a bound (SimOptions.bound_guard): up the
-                # ladder as a finished run over it would go, the frame's overlap noted.
-                reason += flexion_overlap_note(body, [exc.frames[0]])
+                # ladder as a finished run over it would go, the frame's overlap noted as the
+                # gate notes it.
+                exc = BoundBroken(exc.reason + flexion_overlap_note(body, [exc.frames[0]]),
+                                  exc.frames)
             elif exc.stage != "simulate":
                 up = None
             if up is None:
-                if not dropped and reason == exc.reason:
-                    raise
-                raise RejectedSequence(exc.stage, reason + (_runs_note(
-                    current.steps_label(fps), dropped) if dropped else ""), exc.frames,
+                if not dropped:
+                    raise exc from None
+                raise RejectedSequence(exc.stage, exc.reason + _runs_note(
+                    current.steps_label(fps), dropped), exc.frames,
                     runs=len(dropped) + 1) from None
-            dropped.append({"settings": settings, "reason": reason, "wall_time_s": None})
+            dropped.append({"settings": settings, "reason": exc.reason, "wall_time_s": None})
         else:
             found = qa.breaches(sim.qa)
             if not found:

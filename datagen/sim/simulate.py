@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from datagen.errors import BoundBroken, InputError, RejectedSequence, SlidOffShoulders
-from datagen.qa import STRAIN_SHARE_MAX, Breach
+from datagen.qa import STRAIN_SHARE_MAX, Breach, breaches
 from datagen.sim import backend
 from datagen.sim.collider import BodyCollider, frame_tangents
 from datagen.sim.effects import Effects, SceneContent, resolve_effects
@@ -826,10 +826,8 @@ class _Simulation:
         flags = None if sd is None else (sd < 0.0, sd < -self.model.thickness)
         qa_rows.append([_qa(self.model, p, v, flags, strain) for p in self.parts])
         if self.options.bound_guard and len(self.parts) == 1:
-            from datagen import qa
-
             frame = len(qa_rows) - 1
-            found = [replace(b, frame=frame) for b in qa.breaches(
+            found = [replace(b, frame=frame) for b in breaches(
                 {k: np.array([value]) for k, value in qa_rows[-1][0].items()})]
             if found:
                 raise BoundBroken("; ".join(b.reason for b in found) + "; the run stopped there",
