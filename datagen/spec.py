@@ -78,6 +78,16 @@ class OutfitSpec:
     tightness: tuple[float, float] = (0.0, 0.0)  # gamma: offsets on size and girth
     sewn: Literal["jumpsuit", "dress"] | None = None
 
+    def worn(self) -> tuple[tuple[str, str, str], ...]:
+        """(name, type, fabric) of each garment the outfit stage makes from this spec, in a
+        shard's order (by name): what a written sequence's garments record (io.shard: the
+        upper-body cut, such as shirt or polo, else the template), for a sequence that was
+        rejected before any was written. A sewn outfit is one garment of its lower part's
+        fabric (garment.outfit.make_outfit)."""
+        if self.sewn:
+            return ((self.sewn, self.sewn, self.garments[-1].fabric),)
+        return tuple(sorted((g.name, g.variant or g.template, g.fabric) for g in self.garments))
+
 
 @dataclass(frozen=True)
 class SimSpec:

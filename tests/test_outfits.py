@@ -5,6 +5,7 @@ extremes of shape and tightness, smooth resizing, the frequencies of the samplin
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,7 @@ from datagen.garment.outfit import (
     sample_outfit,
 )
 from datagen.garment.resize import body_signed_distance
+from datagen.io.shard import garment_type
 from datagen.recipe import load_recipe
 from datagen.sampling import sample_scene, section_rng
 from datagen.spec import OutfitSpec, SubjectSpec
@@ -101,6 +103,30 @@ def test_body_signed_distance_agrees_with_an_independent_query(body_model):
     clear = np.abs(sd) > 2e-4
     assert np.array_equal(sd[clear] < 0, inside[clear])
     assert np.allclose(np.linalg.norm(normals, axis=1), 1.0)
+
+
+def test_an_outfit_spec_names_the_types_and_fabrics_its_garments_are_written_with(fitted,
+                                                                                 body_model):
+    """A rejected sequence's manifest row takes its garments from its spec (OutfitSpec.worn),
+    a written one from its shard: both must name a garment alike, or a type's rejections
+    count against another (an open shirt against the t-shirt template it is cut from, a
+    jumpsuit as a top and trousers)."""
+    specs = {name: outfit for name, _, outfit in outfit_cases()}
+    kinds = set()
+    for name, _, garments in fitted:
+        written = sorted((g.name, garment_type(g), g.fabric) for g in garments)
+        assert list(specs[name].worn()) == written, name
+        kinds.update(kind for _, kind, _ in written)
+    # the draws cover every upper-body cut and both sewn outfits
+    assert {"tshirt", "shirt", "polo", "top", "jumpsuit", "dress"} <= kinds, kinds
+    # The recipe draws one fabric for both parts of a sewn outfit; a spec may give two.
+    name, outfit = next((n, o) for n, o in specs.items() if o.sewn)
+    upper, lower = outfit.garments
+    two = replace(outfit, garments=(replace(upper, fabric="silk"), replace(lower, fabric="denim")))
+    rest = next(r for n, r, _ in fitted if n == name)
+    made = make_outfit(two, rest, body_model)
+    assert two.worn() == tuple((g.name, garment_type(g), g.fabric) for g in made)
+    assert two.worn() == ((outfit.sewn, outfit.sewn, "denim"),)
 
 
 def test_waistbands_are_attached_and_elastic_as_sampled(fitted):

@@ -266,6 +266,46 @@ def test_storage_figures(tmp_path):
     assert quant_bpvf <= 6.5  # raw int16 is 6 bytes
 
 
+def test_rejected_sequences_count_against_the_types_they_would_have_been_written_as(tmp_path):
+    """The manifest names a rejected sequence's garments as a written one's (the shirt cut
+    from the t-shirt template is a shirt; a jumpsuit one garment of its lower part's fabric),
+    and the card counts the rejections by type, fabric and action beside the written."""
+    from dataclasses import replace
+
+    from datagen.pipeline.dataset import manifest_rows, write_card
+    from datagen.recipe import load_recipe
+    from datagen.spec import GarmentSpec, OutfitSpec
+
+    shirt = OutfitSpec(garments=(
+        GarmentSpec(name="upper", template="tshirt", variant="shirt", fabric="silk", layer=1),
+        GarmentSpec(name="lower", template="trousers", variant="trousers", fabric="denim")))
+    jumpsuit = OutfitSpec(garments=(
+        GarmentSpec(name="upper", template="top", variant="top", fabric="cotton", layer=1),
+        GarmentSpec(name="lower", template="trousers", variant="trousers", fabric="cotton")),
+        sewn="jumpsuit")
+    done = sf.make_record(0, frames=4, lead_in=2).record
+    records = [done]
+    for index, outfit in ((1, shirt), (2, jumpsuit)):
+        rejected = sf.make_rejected(index)
+        rejected.spec = replace(rejected.spec, outfit=outfit)
+        records.append(rejected)
+    sf.write_shard(tmp_path / "shard-00000.h5", records)
+    rows = {row["index"]: row for row in manifest_rows(tmp_path)}
+    assert (rows[1]["garments"], rows[1]["fabrics"]) == (["trousers", "shirt"], ["denim", "silk"])
+    assert (rows[2]["garments"], rows[2]["fabrics"]) == (["jumpsuit"], ["cotton"])
+    assert (rows[0]["garments"], rows[0]["fabrics"]) == (["trousers", "tshirt"],
+                                                         ["denim", "cotton"])
+    write_card(tmp_path, load_recipe(Path(__file__).resolve().parents[1] / "pipelines"
+                                     / "default.yaml"), list(rows.values()), None, 1)
+    card = (tmp_path / "README.md").read_text()
+    # type | written | rejected; the jumpsuit's top and trousers are not garments of their own
+    for line in ("| jumpsuit | 0 | 1 |", "| shirt | 0 | 1 |", "| trousers | 1 | 1 |",
+                 "| tshirt | 1 | 0 |", "| cotton | 1 | 1 |", "| denim | 1 | 1 |",
+                 "| silk | 0 | 1 |"):
+        assert line in card, (line, card)
+    assert "| top |" not in card
+
+
 def test_each_sequence_records_the_environment_of_the_worker_that_made_it(tmp_path):
     """A cluster's workers can differ from the process that writes the shard: the record's
     environment (datagen.environment, taken where run_sequence ran) is what is stored, for

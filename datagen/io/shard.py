@@ -23,7 +23,7 @@ from datagen.environment import environment
 from datagen.errors import InputError
 from datagen.skinning import apply_linear_skinning, apply_sparse_offsets
 from datagen.spec import SceneSpec
-from datagen.types import BodySequence, LinearSkinning
+from datagen.types import BodySequence, Garment, LinearSkinning
 
 FORMAT = "datagen-shard"
 FORMAT_VERSION = 1
@@ -325,11 +325,17 @@ def read_positions(group: h5py.Group, name: str, frames=slice(None)) -> np.ndarr
     return (data.astype(np.float64) * float(step) + trans[..., None, :]).astype(np.float32)
 
 
+def garment_type(garment: Garment) -> str:
+    """The `type` a garment is written with: its upper-body cut (shirt, polo...) or its
+    template's category (spec.OutfitSpec.worn gives the same from a scene spec)."""
+    return (garment.meta or {}).get("variant") or garment.category
+
+
 def write_garments(group: h5py.Group, garments, sim, trans: np.ndarray, quantize: bool) -> None:
     g_root = group.create_group("garments")
     for garment in garments:
         g = g_root.create_group(garment.name)
-        g.attrs["type"] = (garment.meta or {}).get("variant") or garment.category
+        g.attrs["type"] = garment_type(garment)
         g.attrs["category"] = garment.category
         g.attrs["fabric"] = garment.fabric
         if sim is not None and garment.fabric in sim.report.get("fabrics", {}):
