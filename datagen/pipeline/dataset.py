@@ -301,7 +301,7 @@ def write_card(out: Path, loaded: LoadedRecipe, rows: list[dict], wall: float | 
         "## Splits", "", table(Counter(r["split"] for r in ok), "split"), "",
         "## Garment types", "",
         "Sequences written with a garment of each type, fabric and action, and those rejected "
-        "(## Rejections says why).", "",
+        "(the Rejections section below says why).", "",
         against_rejected(lambda r: r["garments"], "type"), "",
         "## Fabrics", "", against_rejected(lambda r: r["fabrics"], "fabric"), "",
         "## Actions", "", against_rejected(lambda r: [r["action"]], "action"), "",
