@@ -64,12 +64,8 @@ def run_variant(variant: tuple) -> dict:
     """One row: the neckline slip's series summary and the wall time."""
     from datagen import qa
     from datagen.body.anny_model import default_body_model
-    from datagen.body.sequence import build_body_sequence
     from datagen.cli import scene_with_outfit, single_scene_spec
-    from datagen.garment.outfit import dropped_parts_for, make_outfit
-    from datagen.motion.load import motion_from_spec
-    from datagen.pipeline.stages import sim_options_from_spec
-    from datagen.recipe import BodyConfig
+    from datagen.pipeline.stages import run_sequence, sim_options_from_spec
     from datagen.sim.backend import init_taichi
     from datagen.sim.simulate import simulate
 
@@ -85,10 +81,11 @@ def run_variant(variant: tuple) -> dict:
         parts = tuple(replace(g, shaping=_narrowed(g.shaping, sleeves)) if g.name == "upper"
                       else g for g in spec.outfit.garments)
         spec = replace(spec, outfit=replace(spec.outfit, garments=parts))
-    model = default_body_model()
-    body = build_body_sequence(spec.subject, motion_from_spec(spec.motion), lead_in, model,
-                               BodyConfig(), dropped_parts_for(spec.outfit))
-    garments = make_outfit(spec.outfit, body.rest, model)
+    # The pipeline's body and outfit stages; the cloth once, without the escalation ladder.
+    record = run_sequence(spec, default_body_model(), simulate_cloth=False)
+    if record.status != "ok":
+        raise SystemExit(f"{variant[0]}: rejected at {record.stage}: {record.reason}")
+    body, garments = record.body, record.garments
     start = time.perf_counter()
     sim = simulate(garments, body, sim_options_from_spec(spec, _fabrics()))
     wall = time.perf_counter() - start

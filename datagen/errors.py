@@ -84,6 +84,12 @@ class SlidOffShoulders(StoppedRun):
     can still resolve."""
 
 
+class BoundBroken(StoppedRun):
+    """A run stopped at the first output frame whose QA broke a bound (qa.breaches; the bound
+    guard). The ladder simulates it again at finer steps, as it does a finished run over a
+    bound."""
+
+
 def user_errors(func):
     """A CLI command that prints a DatagenError as one line and exits 2, without a traceback."""
 
@@ -98,9 +104,3 @@ def user_errors(func):
             sys.exit(2)
 
     return wrapper
-
-
-class BoundBroken(StoppedRun):
-    """A run stopped at the first output frame whose QA broke a bound (qa.breaches; the bound
-    guard). The ladder simulates it again at finer steps, as it does a finished run over a
-    bound."""

@@ -481,7 +481,7 @@ def test_a_dataset_that_rejects_guards_necklines_and_one_that_keeps_does_not():
 
     spec = SceneSpec(0, 0, "seq")
     assert not sim_options_from_spec(spec).neckline_guard
-    assert sim_options_from_spec(spec, neckline_guard=True).neckline_guard
+    assert sim_options_from_spec(spec, guards=True).neckline_guard
     default = Path(__file__).parents[1] / "pipelines" / "default.yaml"
     loaded = load_recipe(default)
     assert loaded.recipe.simulation.qa == "reject" and _rejects(loaded)

@@ -39,7 +39,7 @@ def run_sequences_batched(specs: list[SceneSpec], body_model,
                           body_config: BodyConfig | None = None, base_dir: Path | None = None,
                           templates_dir: Path | None = None,
                           fabrics: dict | None = None,
-                          neckline_guard: bool = False) -> list[SequenceRecord]:
+                          guards: bool = False) -> list[SequenceRecord]:
     """Run the sequences end to end, their simulations batched (module docstring); the records
     in the order of `specs`. Each record's `simulate` timing is its share of its batch's time
     plus any run of its own."""
@@ -51,7 +51,7 @@ def run_sequences_batched(specs: list[SceneSpec], body_model,
         by_settings.setdefault(record.spec.simulation, []).append(record)
     for same_settings in by_settings.values():
         _simulate_together(same_settings, sim_options_from_spec(same_settings[0].spec, fabrics,
-                                                                neckline_guard))
+                                                                guards))
     return records
 
 

@@ -89,7 +89,7 @@ def compute_sequence(recipe_path: str, index: int):
     loaded: LoadedRecipe = state["loaded"]
     record = run_sequence(sample_scene(loaded, index), state["model"], loaded.recipe.body,
                           loaded.base_dir, _templates_dir(loaded),
-                          neckline_guard=_rejects(loaded))
+                          guards=_rejects(loaded))
     return _qa_gate(loaded, record)
 
 
@@ -105,7 +105,7 @@ def compute_sequences(recipe_path: str, indices: list[int]) -> list:
     loaded: LoadedRecipe = state["loaded"]
     records = run_sequences_batched([sample_scene(loaded, i) for i in indices], state["model"],
                                     loaded.recipe.body, loaded.base_dir, _templates_dir(loaded),
-                                    neckline_guard=_rejects(loaded))
+                                    guards=_rejects(loaded))
     return [_qa_gate(loaded, r) for r in records]
 
 

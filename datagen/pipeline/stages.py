@@ -51,18 +51,18 @@ class SequenceRecord:
 
 
 def sim_options_from_spec(spec: SceneSpec, fabrics: dict | None = None,
-                          neckline_guard: bool = False):
-    """The simulator's options for a scene; `neckline_guard` where the caller rejects a
-    sequence whose garment slid off the shoulders or broke a QA bound: its runs stop at the
-    first such frame (SimOptions.neckline_guard and bound_guard)."""
+                          guards: bool = False):
+    """The simulator's options for a scene; `guards` where the caller rejects a sequence whose
+    garment slid off the shoulders or broke a QA bound: its runs stop at the first such frame
+    (SimOptions.neckline_guard and bound_guard)."""
     from datagen.sim.simulate import SimOptions
 
     s = spec.simulation
     return SimOptions(solver=s.solver, quality=s.quality, substeps=s.substeps,
                       iterations=s.iterations, effects=s.effects,
                       wind=tuple(s.wind) if s.wind else None, fabrics=dict(fabrics or {}),
-                      settle_seconds=s.settle_seconds, neckline_guard=neckline_guard,
-                      bound_guard=neckline_guard)
+                      settle_seconds=s.settle_seconds, neckline_guard=guards,
+                      bound_guard=guards)
 
 
 def run_sequence(
@@ -75,12 +75,12 @@ def run_sequence(
     fabrics: dict | None = None,
     motion_hook: Callable[[Motion], Motion] | None = None,
     garment_hook: Callable[[list[Garment], BodySequence], list[Garment]] | None = None,
-    neckline_guard: bool = False,
+    guards: bool = False,
 ) -> SequenceRecord:
     """Run one sequence end to end. A RejectedSequence becomes a rejected record; any other
     error propagates (it is a bug or bad input, not a property of the scene). The hooks alter
     the motion or the fitted garments on their way (the hard cases inject faults with them).
-    `neckline_guard`: stop a run at the first frame where its garment slid off the shoulders
+    `guards`: stop a run at the first frame where its garment slid off the shoulders
     or its QA broke a bound (SimOptions.neckline_guard and bound_guard), where the caller's
     gate rejects such a sequence."""
     from datagen.body.sequence import build_body_sequence
@@ -110,7 +110,7 @@ def run_sequence(
                 try:
                     record.sim = simulate_within_bounds(record.garments, record.body,
                                                         sim_options_from_spec(
-                                                            spec, fabrics, neckline_guard))
+                                                            spec, fabrics, guards))
                 finally:
                     record.timings["simulate"] = time.perf_counter() - t
                 record.sim_runs = simulation_runs(record.sim)
@@ -191,8 +191,7 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
             if isinstance(outcome, RejectedSequence):
                 raise outcome
             sim = simulate(garments, body, current) if outcome is None else outcome
-        except RejectedSequence as caught:
-            exc = caught
+        except RejectedSequence as exc:
             if isinstance(exc, SlidOffShoulders):
                 up = current.escalated()  # up the presets, not past the top (docstring)
             elif isinstance(exc, BoundBroken):
