@@ -316,7 +316,8 @@ def test_each_sequence_records_the_environment_of_the_worker_that_made_it(tmp_pa
     import taichi
 
     from datagen.environment import environment
-    from datagen.pipeline.dataset import manifest_rows
+    from datagen.pipeline.dataset import manifest_rows, write_card
+    from datagen.recipe import load_recipe
 
     here = environment()
     assert here["packages"]["numpy"] == numpy.__version__
@@ -332,7 +333,15 @@ def test_each_sequence_records_the_environment_of_the_worker_that_made_it(tmp_pa
         for group in (f["sequences"][done.spec.sequence_id],
                       f["rejected"][rejected.spec.sequence_id]):
             assert json.loads(group.attrs["environment"]) == worker
-    labels = {row["id"]: row["environment"] for row in manifest_rows(tmp_path)}
+    rows = manifest_rows(tmp_path)
+    labels = {row["id"]: row["environment"] for row in rows}
     assert set(labels) == {done.spec.sequence_id, rejected.spec.sequence_id}
     for label in labels.values():
         assert label.startswith("Worker CPU 9000; python ") and "anny 9.9" in label
+    # The card's "Made on" counts them as its other tables do: written | rejected.
+    write_card(tmp_path, load_recipe(Path(__file__).resolve().parents[1] / "pipelines"
+                                     / "default.yaml"), rows, None, 1)
+    card = (tmp_path / "README.md").read_text()
+    made_on = card.split("## Made on")[1].split("## Rejections")[0]
+    assert "| environment | sequences | rejected |" in made_on, made_on
+    assert f"| {labels[done.spec.sequence_id]} | 1 | 1 |" in made_on, made_on

@@ -306,11 +306,11 @@ def write_card(out: Path, loaded: LoadedRecipe, rows: list[dict], wall: float | 
         "## Fabrics", "", against_rejected(lambda r: r["fabrics"], "fabric"), "",
         "## Actions", "", against_rejected(lambda r: [r["action"]], "action"), "",
         "## Made on", "",
-        "The machine and package versions of the workers that made the sequences (each "
-        "sequence's `environment` attribute). The same seed gives the same data on the same "
-        "machine and software; elsewhere float rounding differs, and a chaotic frame can "
-        "amplify it.", "",
-        table(Counter(r["environment"] or "not recorded" for r in rows), "environment"), "",
+        "The machine and package versions of the workers that made the sequences, written "
+        "and rejected (each sequence's `environment` attribute). The same seed gives the same "
+        "data on the same machine and software; elsewhere float rounding differs, and a "
+        "chaotic frame can amplify it.", "",
+        against_rejected(lambda r: [r["environment"] or "not recorded"], "environment"), "",
         "## Rejections", "",
     ]
     if rejected:
