@@ -2,12 +2,13 @@
 
 The scene is `datagen simulate --seed 3 --garment shirt --motion run --fabric cotton`: a tight
 open cotton shirt (tightness 0.37, 0.37; sleeves cut near the elbow) on a 2.19 m woman running.
-Each row changes one thing (the motion, the lead-in, an effect, the sleeves' shaping, the
-fabric's friction, the garment's cut) and simulates 4 s at the `default` preset with no guard
-and no escalation. The measure is the neckline's slip off the shoulders (`qa.neckline_slip`,
-the dataset gate's: over 0.2 m the sequence is rejected) at the first output frame, its
-largest, and the first frame over the bound (docs/simulator.md, "Open shirts on the move").
-About 5 minutes on 2 cores.
+Each row changes one thing (the motion, the lead-in, an effect, the sleeves' shaping or
+length, the garment's size, the fabric's friction, the closed cut) and simulates 4 s at the
+`default` preset with no guard and no escalation. The measure is the neckline's slip off
+the shoulders (`qa.neckline_slip`, the dataset gate's: over 0.2 m the sequence is rejected)
+at the first output frame, its largest, and the first frame over the bound
+(docs/simulator.md, "Open shirts on the move").
+About 6 minutes on 2 cores.
 
     python -m benchmarks.study_open_shirt
 """
@@ -16,39 +17,62 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 COMMAND = "python -m benchmarks.study_open_shirt"
 SEED, FRAMES = 3, 120
 NARROW_SLEEVES = {"W0": 0.85, "a1": -0.15, "a2": 0.01}  # W0 scaled; a1, a2 set
-# (row, action, motion params, garment, fabric, lead-in frames, effects, sleeve shaping)
+
+@dataclass(frozen=True)
+class Variant:
+    """One row: the scene as drawn, with the fields that differ from it set."""
+
+    row: str
+    action: str = "run"
+    params: dict = field(default_factory=dict)  # the motion's
+    garment: str = "shirt"
+    fabric: str = "cotton"
+    lead_in: int = 15  # frames
+    effects: str = "auto"
+    sleeves: dict | None = None  # NARROW_SLEEVES-style shaping changes
+    lengths: dict | None = None  # cut lengths (m) in place of the drawn ones
+    tightness: tuple[float, float] | None = None  # in place of the drawn (0.37, 0.37)
+
+
+CAP_SLEEVES = {"sleeve_l": 0.04, "sleeve_r": 0.04}  # the shortest cut the template allows
+LONG_SLEEVES = {"sleeve_l": 0.465, "sleeve_r": 0.465}  # near its longest (0.470)
 VARIANTS = [
-    ("as drawn: a run", "run", {}, "shirt", "cotton", 15, "auto", None),
-    ("lead-in of 45 frames instead of 15", "run", {}, "shirt", "cotton", 45, "auto", None),
-    ("without air drag", "run", {}, "shirt", "cotton", 15, "auto,-air_drag", None),
-    ("arm swing and torso motion at half", "run", {"amplitude": 0.5}, "shirt", "cotton", 15,
-     "auto", None),
-    ("running at 2 m/s", "run", {"speed": 2.0}, "shirt", "cotton", 15, "auto", None),
-    ("the narrowest sleeves (W0 x 0.85, a1 -0.15, a2 0.01)", "run", {}, "shirt", "cotton", 15,
-     "auto", NARROW_SLEEVES),
-    ("friction 0.9", "run", {}, "shirt", "cotton_mu09", 15, "auto", None),
-    ("friction 1.5", "run", {}, "shirt", "cotton_mu15", 15, "auto", None),
-    ("the same garment closed (tshirt)", "run", {}, "tshirt", "cotton", 15, "auto", None),
-    ("standing (idle)", "idle", {}, "shirt", "cotton", 15, "auto", None),
-    ("walking at 1.3 m/s", "walk", {}, "shirt", "cotton", 15, "auto", None),
-    ("walking at 0.6 m/s", "walk", {"speed": 0.6}, "shirt", "cotton", 15, "auto", None),
-    ("walking at 0.6 m/s, the narrowest sleeves", "walk", {"speed": 0.6}, "shirt", "cotton", 15,
-     "auto", NARROW_SLEEVES),
+    Variant("as drawn: a run"),
+    Variant("lead-in of 45 frames instead of 15", lead_in=45),
+    Variant("without air drag", effects="auto,-air_drag"),
+    Variant("arm swing and torso motion at half", params={"amplitude": 0.5}),
+    Variant("running at 2 m/s", params={"speed": 2.0}),
+    Variant("the narrowest sleeves (W0 x 0.85, a1 -0.15, a2 0.01)", sleeves=NARROW_SLEEVES),
+    Variant("cap sleeves (cut at 0.04 m)", lengths=CAP_SLEEVES),
+    Variant("full-length sleeves (cut at 0.465 m)", lengths=LONG_SLEEVES),
+    Variant("cut for the subject (tightness 0, 0)", tightness=(0.0, 0.0)),
+    Variant("cut a size bigger (tightness -0.5, -0.5)", tightness=(-0.5, -0.5)),
+    Variant("friction 0.9", fabric="cotton_mu09"),
+    Variant("friction 1.1", fabric="cotton_mu11"),
+    Variant("friction 1.25", fabric="cotton_mu125"),
+    Variant("friction 1.5", fabric="cotton_mu15"),
+    Variant("the same garment closed (tshirt)", garment="tshirt"),
+    Variant("standing (idle)", action="idle"),
+    Variant("walking at 1.3 m/s", action="walk"),
+    Variant("walking at 0.6 m/s", action="walk", params={"speed": 0.6}),
+    Variant("walking at 0.6 m/s, the narrowest sleeves", action="walk", params={"speed": 0.6},
+            sleeves=NARROW_SLEEVES),
 ]
 
 
 def _fabrics() -> dict:
     from datagen.sim.fabrics import FABRICS
 
-    return {"cotton_mu09": replace(FABRICS["cotton"], name="cotton_mu09", friction=0.9),
-            "cotton_mu15": replace(FABRICS["cotton"], name="cotton_mu15", friction=1.5)}
+    return {name: replace(FABRICS["cotton"], name=name, friction=mu)
+            for name, mu in (("cotton_mu09", 0.9), ("cotton_mu11", 1.1), ("cotton_mu125", 1.25),
+                             ("cotton_mu15", 1.5))}
 
 
 def _narrowed(shaping: dict[str, float], change: dict[str, float]) -> dict[str, float]:
@@ -60,7 +84,7 @@ def _narrowed(shaping: dict[str, float], change: dict[str, float]) -> dict[str, 
     return out
 
 
-def run_variant(variant: tuple) -> dict:
+def run_variant(variant: Variant) -> dict:
     """One row: the neckline slip's series summary and the wall time."""
     from datagen import qa
     from datagen.body.anny_model import default_body_model
@@ -70,21 +94,26 @@ def run_variant(variant: tuple) -> dict:
     from datagen.sim.simulate import simulate
 
     init_taichi(threads=1)
-    _, action, params, garment, fabric, lead_in, effects, sleeves = variant
-    spec = single_scene_spec(SEED, action, None, None, FRAMES, None, 30.0, lead_in=lead_in)
-    spec = scene_with_outfit(spec, garment, fabric, SEED)
-    spec = replace(spec, motion=replace(spec.motion, params={**spec.motion.params, **params}))
-    if effects != "auto":
+    v = variant
+    spec = single_scene_spec(SEED, v.action, None, None, FRAMES, None, 30.0, lead_in=v.lead_in)
+    spec = scene_with_outfit(spec, v.garment, v.fabric, SEED)
+    spec = replace(spec, motion=replace(spec.motion, params={**spec.motion.params, **v.params}))
+    if v.effects != "auto":
         spec = replace(spec, simulation=replace(spec.simulation,
-                                                effects=tuple(effects.split(","))))
-    if sleeves:
-        parts = tuple(replace(g, shaping=_narrowed(g.shaping, sleeves)) if g.name == "upper"
-                      else g for g in spec.outfit.garments)
-        spec = replace(spec, outfit=replace(spec.outfit, garments=parts))
+                                                effects=tuple(v.effects.split(","))))
+    outfit = spec.outfit
+    if v.sleeves or v.lengths:
+        parts = tuple(replace(g, shaping=_narrowed(g.shaping, v.sleeves or {}),
+                              cuts={**g.cuts, **(v.lengths or {})}) if g.name == "upper"
+                      else g for g in outfit.garments)
+        outfit = replace(outfit, garments=parts)
+    if v.tightness is not None:
+        outfit = replace(outfit, tightness=v.tightness)
+    spec = replace(spec, outfit=outfit)
     # The pipeline's body and outfit stages; the cloth once, without the escalation ladder.
     record = run_sequence(spec, default_body_model(), simulate_cloth=False)
     if record.status != "ok":
-        raise SystemExit(f"{variant[0]}: rejected at {record.stage}: {record.reason}")
+        raise SystemExit(f"{v.row}: rejected at {record.stage}: {record.reason}")
     body, garments = record.body, record.garments
     start = time.perf_counter()
     sim = simulate(garments, body, sim_options_from_spec(spec, _fabrics()))
@@ -109,7 +138,7 @@ def main() -> None:
     with ProcessPoolExecutor(2) as pool:
         for variant, r in zip(VARIANTS, pool.map(run_variant, VARIANTS), strict=True):
             over = "never" if r["over"] is None else str(r["over"])
-            print(f"| {variant[0]} | {r['first']:.3f} | {r['largest']:.3f} | {over} | "
+            print(f"| {variant.row} | {r['first']:.3f} | {r['largest']:.3f} | {over} | "
                   f"{r['seconds']:.0f} |", flush=True)
 
 
