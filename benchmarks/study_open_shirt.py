@@ -23,7 +23,7 @@ import numpy as np
 
 COMMAND = "python -m benchmarks.study_open_shirt"
 SEED, FRAMES = 3, 120
-NARROW_SLEEVES = {"W0": 0.85, "a1": -0.15, "a2": 0.01}  # W0 scaled; a1, a2 set
+
 
 @dataclass(frozen=True)
 class Variant:
@@ -41,6 +41,7 @@ class Variant:
     tightness: tuple[float, float] | None = None  # in place of the drawn (0.37, 0.37)
 
 
+NARROW_SLEEVES = {"W0": 0.85, "a1": -0.15, "a2": 0.01}  # W0 scaled; a1, a2 set
 CAP_SLEEVES = {"sleeve_l": 0.04, "sleeve_r": 0.04}  # the shortest cut the template allows
 LONG_SLEEVES = {"sleeve_l": 0.465, "sleeve_r": 0.465}  # near its longest (0.470)
 VARIANTS = [

@@ -19,7 +19,6 @@ from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
-from datagen.config import from_mapping
 from datagen.errors import InputError
 from datagen.io.shard import (
     FORMAT,
@@ -30,7 +29,7 @@ from datagen.io.shard import (
     write_record,
 )
 from datagen.recipe import LoadedRecipe, load_recipe
-from datagen.spec import OutfitSpec
+from datagen.spec import SceneSpec
 
 MANIFEST = "manifest.jsonl"
 DATASET_INFO = "dataset.json"
@@ -210,19 +209,19 @@ def manifest_rows(out: Path) -> list[dict]:
                     "environment": _environment_label(g),
                 })
             for seq_id, g in f.get("rejected", {}).items():
-                spec = json.loads(g.attrs["spec"])
+                spec = SceneSpec.from_json(g.attrs["spec"], str(shard))
                 timings = json.loads(g.attrs.get("timings", "{}"))
                 # The types and fabrics its garments would have been written with, so that a
                 # type's rejections count against it (an open shirt is a "shirt", not the
                 # "tshirt" template it is cut from; a jumpsuit one garment, not two).
-                worn = from_mapping(OutfitSpec, spec["outfit"], shard, "spec.outfit").worn()
+                worn = spec.outfit.worn()
                 rows.append({
-                    "id": seq_id, "index": spec["sequence_index"], "shard": shard.name,
+                    "id": seq_id, "index": spec.sequence_index, "shard": shard.name,
                     "status": "rejected", "reason": f"{g.attrs['stage']}: {g.attrs['reason']}",
-                    "split": spec["split"],
+                    "split": spec.split,
                     "garments": [kind for _, kind, _ in worn],
                     "fabrics": [fabric for _, _, fabric in worn],
-                    "action": spec["motion"]["action"], "frames": 0, "qa": {},
+                    "action": spec.motion.action, "frames": 0, "qa": {},
                     "wall_time": float(sum(timings.values())),
                     "environment": _environment_label(g),
                 })
