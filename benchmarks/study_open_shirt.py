@@ -3,12 +3,13 @@
 The scene is `datagen simulate --seed 3 --garment shirt --motion run --fabric cotton`: a tight
 open cotton shirt (tightness 0.37, 0.37; sleeves cut near the elbow) on a 2.19 m woman running.
 Each row changes one thing (the motion, the lead-in, an effect, the sleeves' shaping or
-length, the garment's size, the fabric's friction, the closed cut) and simulates 4 s at the
-`default` preset with no guard and no escalation. The measure is the neckline's slip off
+length, the garment's size, the fabric's friction, the closed cut) or two (a walk with the
+air's pressure drag) and simulates 4 s at the `default` preset with no guard and no
+escalation. The measure is the neckline's slip off
 the shoulders (`qa.neckline_slip`, the dataset gate's: over 0.2 m the sequence is rejected)
 at the first output frame, its largest, and the first frame over the bound
 (docs/simulator.md, "Open shirts on the move").
-About 6 minutes on 2 cores.
+About 7 minutes on 2 cores.
 
     python -m benchmarks.study_open_shirt
 """
@@ -48,6 +49,7 @@ VARIANTS = [
     Variant("as drawn: a run"),
     Variant("lead-in of 45 frames instead of 15", lead_in=45),
     Variant("without air drag", effects="auto,-air_drag"),
+    Variant("with pressure drag", effects="auto,+pressure_drag"),
     Variant("arm swing and torso motion at half", params={"amplitude": 0.5}),
     Variant("running at 2 m/s", params={"speed": 2.0}),
     Variant("the narrowest sleeves (W0 x 0.85, a1 -0.15, a2 0.01)", sleeves=NARROW_SLEEVES),
@@ -62,7 +64,11 @@ VARIANTS = [
     Variant("the same garment closed (tshirt)", garment="tshirt"),
     Variant("standing (idle)", action="idle"),
     Variant("walking at 1.3 m/s", action="walk"),
+    Variant("walking at 1.3 m/s, with pressure drag", action="walk",
+            effects="auto,+pressure_drag"),
     Variant("walking at 0.6 m/s", action="walk", params={"speed": 0.6}),
+    Variant("walking at 0.6 m/s, with pressure drag", action="walk", params={"speed": 0.6},
+            effects="auto,+pressure_drag"),
     Variant("walking at 0.6 m/s, the narrowest sleeves", action="walk", params={"speed": 0.6},
             sleeves=NARROW_SLEEVES),
 ]

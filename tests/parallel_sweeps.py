@@ -46,8 +46,8 @@ def main(mode: str, out: str) -> None:
     # A 1 m leather sheet pinned along one edge swings down (pins, tethers, stiff bends).
     sheet = grid_sheet(40, 1.0, 1.5, fabric="leather")
     sheet.pinned = np.flatnonzero(np.isclose(sheet.vertices[:, 0], -0.5))
-    options = SimOptions(frames=frames["sheet"], settle_seconds=0.0, effects="all",
-                         strain_refinements=0)
+    options = SimOptions(frames=frames["sheet"], settle_seconds=0.0,
+                         effects=("all", "-pressure_drag"), strain_refinements=0)
     swing = simulate([sheet], None, options)
     # A skirt-like cotton tube on a swinging, twisting cylinder (body contact, friction,
     # the closest-triangle search, self-collision).

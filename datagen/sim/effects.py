@@ -8,7 +8,10 @@ The rules (docs/simulator.md, "Effects"):
   garment with a loose fit, tightness < -0.5 on the size axis); a tight top needs none;
 - elastic rings: only when a garment has elastic loops;
 - pins: only when a garment has pinned vertices (waistbands attached to the body);
-- wind: only when the scene asks for it.
+- wind: only when the scene asks for it;
+- pressure drag (air pushing on each panel, quadratic in its speed along its normal): only when
+  asked (`auto,+pressure_drag`): Blender's linear air drag is CLOTH3D's model of the air, and
+  docs/simulator.md ("Open shirts on the move") has what the quadratic one changes.
 `--effects all` turns everything on that the scene can support; an explicit list overrides;
 `auto` or `all` followed by `-name` / `+name` items changes that base (`auto,-self_collision`).
 """
@@ -31,6 +34,7 @@ EFFECT_NAMES = (
     "elastic",
     "pins",
     "air_drag",
+    "pressure_drag",
     "wind",
 )
 LOOSE_CATEGORIES = frozenset({"skirt", "dress"})
@@ -50,6 +54,7 @@ class Effects:
     elastic: bool = False
     pins: bool = False
     air_drag: bool = True
+    pressure_drag: bool = False
     wind: bool = False
 
     def enabled(self) -> list[str]:
@@ -150,5 +155,6 @@ def _all_effects(scene: SceneContent) -> Effects:
         self_collision=True,
         elastic=scene.has_elastic,
         pins=scene.has_pins,
+        pressure_drag=True,
         wind=True,
     )

@@ -4,7 +4,9 @@ that the others are measured against (docs/accuracy-vs-time.md).
 
 Each substep minimises the incremental potential
     1/(2h^2) |x - x_n - h v_n|_M^2 + E(x) - f_ext . x + damping,
-with the springs' Rayleigh damping and the air drag linearised in (x - x_n) / h. The strain
+with the springs' Rayleigh damping and the air drag linearised in (x - x_n) / h; the pressure
+drag, where it is on, acts on the velocity before the solve (split off, implicit in itself:
+kernels.pressure_drag). The strain
 limit and then contact are resolved after the solve by the same projections the other solvers
 use, so all solvers share one fabric and one collision model.
 """
@@ -35,6 +37,7 @@ class ImplicitSolver(ClothSolver):
         self.dx = ti.ndarray(VEC3, n)
         self.diag = ti.ndarray(IK.mat3, n)
         self.mass = _nd(REAL, model.mass.astype(NP_REAL))
+        self.drag = _nd(REAL, model.air_drag.astype(NP_REAL))  # the potential's linear drag
         pinned = np.zeros(n, np.int32)
         if self.n_pins:
             pinned[model.pinned] = 1
@@ -73,6 +76,8 @@ class ImplicitSolver(ClothSolver):
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
         import time
 
+        if self.use_pressure:
+            self._run("pressure_drag", K.pressure_drag, self.v, self.air, self.w, self.wind, h)
         t = time.perf_counter()
         start, h_velocity = self._solve(h, s1)
         self.costs["implicit_solve"] += time.perf_counter() - t

@@ -132,6 +132,28 @@ def lerp3(a: vec3, b: vec3, s: REAL) -> vec3:
 
 
 # -- integration -------------------------------------------------------------------------------
+# Each vertex's air terms, `air` (V4): its linear drag coefficient (kg/s: Blender's air damping
+# times its area) and its pressure-drag vector (kg/m: 1/2 rho C_d times its area, along its
+# unit normal at the frame's start; zero where pressure drag is off). See air_velocity.
+@ti.func
+def air_velocity(vi: vec3, air: VEC4, wi: REAL, wind: vec3, h: REAL, use_air: ti.template(),
+                 use_pressure: ti.template()) -> vec3:
+    """The velocity after a step h of air drag, relative to the wind: the linear drag, then the
+    pressure drag -c |v_n| v_n n on the velocity's normal part v_n. Each implicit in the velocity
+    it damps (with |v_n| taken at the step's start for the quadratic term), so neither can
+    reverse a velocity at any step."""
+    if ti.static(use_air):
+        vi = wind + (vi - wind) / (1.0 + h * air[0] * wi)
+    if ti.static(use_pressure):
+        cn = vec3(air[1], air[2], air[3])
+        c = cn.norm()
+        if c > 0.0:
+            n = cn / c
+            vn = (vi - wind).dot(n)
+            vi += (vn / (1.0 + h * c * ti.abs(vn) * wi) - vn) * n
+    return vi
+
+
 @ti.func
 def predict_one(
     i: ti.i32,
@@ -139,20 +161,18 @@ def predict_one(
     xp: V3,
     v: V3,
     w: F1,
-    drag: F1,
+    air: V4,
     gravity: vec3,
     wind: vec3,
     h: REAL,
     use_gravity: ti.template(),
     use_air: ti.template(),
+    use_pressure: ti.template(),
 ):
     """Start of a substep: remember positions, apply external forces, move ballistically."""
     xp[i] = x[i]
     if w[i] > 0.0:
-        vi = v[i]
-        if ti.static(use_air):
-            # Linear drag relative to the air, integrated implicitly (unconditionally stable).
-            vi = wind + (vi - wind) / (1.0 + h * drag[i] * w[i])
+        vi = air_velocity(v[i], air[i], w[i], wind, h, use_air, use_pressure)
         if ti.static(use_gravity):
             vi += h * gravity
         v[i] = vi
@@ -165,15 +185,16 @@ def predict(
     xp: V3,
     v: V3,
     w: F1,
-    drag: F1,
+    air: V4,
     gravity: vec3,
     wind: vec3,
     h: REAL,
     use_gravity: ti.template(),
     use_air: ti.template(),
+    use_pressure: ti.template(),
 ):
     for i in x:
-        predict_one(i, x, xp, v, w, drag, gravity, wind, h, use_gravity, use_air)
+        predict_one(i, x, xp, v, w, air, gravity, wind, h, use_gravity, use_air, use_pressure)
 
 
 @ti.func
@@ -676,25 +697,44 @@ def explicit_update(
     v: V3,
     f: V3,
     w: F1,
-    drag: F1,
+    air: V4,
     gravity: vec3,
     wind: vec3,
     h: REAL,
     use_gravity: ti.template(),
     use_air: ti.template(),
+    use_pressure: ti.template(),
 ):
     """Semi-implicit (symplectic) Euler: v += h a; x += h v."""
     for i in x:
         xp[i] = x[i]
         if w[i] > 0.0:
-            vi = v[i] + h * w[i] * f[i]
-            if ti.static(use_air):
-                vi = wind + (vi - wind) / (1.0 + h * drag[i] * w[i])
+            vi = air_velocity(v[i] + h * w[i] * f[i], air[i], w[i], wind, h, use_air,
+                              use_pressure)
             if ti.static(use_gravity):
                 vi += h * gravity
             v[i] = vi
             x[i] += h * vi
         f[i] = vec3(0.0)
+
+
+@ti.kernel
+def set_pressure_normals(nrm: V3, coefficient: F1, air: V4):
+    """The pressure drag's vectors for a frame (air_velocity): each vertex's unit normal `nrm`
+    (vertex_normals; zero where no face uses the vertex) times its coefficient, kg/m."""
+    for i in nrm:
+        a = air[i]
+        cn = nrm[i] * coefficient[i]
+        air[i] = VEC4(a[0], cn[0], cn[1], cn[2])
+
+
+@ti.kernel
+def pressure_drag(v: V3, air: V4, w: F1, wind: vec3, h: REAL):
+    """Pressure drag alone (air_velocity) for a step h: the implicit solver's, split off before
+    its Newton solve, which takes the linear drag into its potential."""
+    for i in v:
+        if w[i] > 0.0:
+            v[i] = air_velocity(v[i], air[i], w[i], wind, h, False, True)
 
 
 # -- pins --------------------------------------------------------------------------------------
@@ -1972,7 +2012,7 @@ def xpbd_frame(
     xp: V3,
     v: V3,
     w: F1,
-    drag: F1,
+    air: V4,
     springs: I2,
     rest: F1,
     limit: F1,
@@ -2034,6 +2074,7 @@ def xpbd_frame(
     Q: I1,
     use_gravity: ti.template(),
     use_air: ti.template(),
+    use_pressure: ti.template(),
     use_collision: ti.template(),
     use_friction: ti.template(),
     use_layers: ti.template(),
@@ -2084,7 +2125,8 @@ def xpbd_frame(
         s0 = k / n_sub
         s1 = (k + 1) / n_sub
         for i in range(n):
-            predict_one(i, x, xp, v, w, drag, gravity, wind, h, use_gravity, use_air)
+            predict_one(i, x, xp, v, w, air, gravity, wind, h, use_gravity, use_air,
+                        use_pressure)
         # Pinned vertices reach their targets before the constraints, which then pull the
         # fabric after them (moved afterwards, they would leave the edges next to them stretched).
         for p in range(n_pins):

@@ -61,7 +61,7 @@ def xpbd_substep_begin(
     xp: V3,
     v: V3,
     w: F1,
-    drag: F1,
+    air: V4,
     gravity: vec3,
     wind: vec3,
     h: REAL,
@@ -74,11 +74,13 @@ def xpbd_substep_begin(
     lam_b: V3,
     use_gravity: ti.template(),
     use_air: ti.template(),
+    use_pressure: ti.template(),
 ):
     """kernels.predict, then the pins at their targets (kernels.apply_pins), then the spring
     and bending multipliers at zero."""
     for i in x:
-        predict_one(i, x, xp, v, w, drag, gravity, wind, h, use_gravity, use_air)
+        predict_one(i, x, xp, v, w, air, gravity, wind, h, use_gravity, use_air,
+                    use_pressure)
     for p in range(n_pins):
         x[pin_idx[p]] = lerp3(pin_t0[p], pin_t1[p], s1)
     for e in lam:

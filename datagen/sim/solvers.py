@@ -203,7 +203,12 @@ class ClothSolver:
             w = (1.0 / model.mass).astype(NP_REAL)
         self.w_np = w
         self.w = _nd(REAL, w)
-        self.drag = _nd(REAL, model.air_drag.astype(NP_REAL))
+        # Each vertex's air terms (kernels.air_velocity): the linear drag, and the pressure
+        # drag's vector, set per frame from the vertex normals where that effect is on.
+        air = np.zeros((n, 4), NP_REAL)
+        air[:, 0] = model.air_drag
+        self.air = _nd(VEC4, air)
+        self._init_pressure_drag()
         self.thickness = _nd(REAL, model.thickness.astype(NP_REAL))
         self.friction = _nd(REAL, model.friction.astype(NP_REAL))
         self.tri = _nd(ti.i32, -np.ones(n, np.int32))
@@ -260,6 +265,29 @@ class ClothSolver:
         self._init_strain_limit()
         self._init_self_collision()
         self._init_layers()
+
+    # -- pressure drag -------------------------------------------------------------------------
+    def _init_pressure_drag(self) -> None:
+        self.use_pressure = bool(self.effects.pressure_drag)
+        if not self.use_pressure:
+            return
+        model = self.model
+        self.pressure_coefficient = _nd(REAL, model.pressure_drag.astype(NP_REAL))
+        self.pressure_normals = ti.ndarray(VEC3, self.n)
+        self.cloth_faces = _nd(ti.math.ivec3, model.faces.astype(np.int32))
+        if self.parallel:
+            self.cloth_vertex_faces = _vertex_lists_nd(model.faces.ravel(), self.n)
+
+    def _set_pressure_normals(self) -> None:
+        """The pressure drag's directions for the frame: the vertex normals at its start (once a
+        frame: with the normals updated every substep as well, the study's running shirt ended
+        within a few frames of the same result, docs/simulator.md)."""
+        if self.parallel:
+            PK.vertex_normals_gathered(self.x, self.cloth_faces, *self.cloth_vertex_faces,
+                                       self.pressure_normals)
+        else:
+            K.vertex_normals(self.x, self.cloth_faces, self.pressure_normals)
+        K.set_pressure_normals(self.pressure_normals, self.pressure_coefficient, self.air)
 
     # -- strain limiting (force-based solvers) -----------------------------------------------
     def _init_strain_limit(self) -> None:
@@ -378,7 +406,9 @@ class ClothSolver:
         (17 cm a frame in a run), and a surface held still for the frame would drag the outer
         garment behind it and then jump through it. With `search`, outer vertices are searched
         against it afresh (the frames the body is searched, as between those they follow the
-        inner triangles they track)."""
+        inner triangles they track). With pressure drag, its directions for the frame."""
+        if self.use_pressure:
+            self._run("pressure_drag", self._set_pressure_normals)
         if not self.use_layers:
             return
         x, v = self.get_state()
@@ -847,7 +877,7 @@ class XPBDSolver(ClothSolver):
         # P and Q go to the kernel as numpy arrays: on a CPU it reads them in place, where an
         # upload to a device array cost 0.09 ms each in Taichi's Python.
         K.xpbd_frame(
-            self.x, self.xp, self.v, self.w, self.drag,
+            self.x, self.xp, self.v, self.w, self.air,
             self.f_springs, self.f_rest, self.f_limit, self.f_comp_t, self.f_comp_c, self.f_beta,
             self.f_lam,
             self.f_ranges,
@@ -862,7 +892,8 @@ class XPBDSolver(ClothSolver):
             lc.starts, lc.items,
             self.limit_adj, self.limit_lists,
             P, Q,
-            e.gravity, e.air_drag or e.wind, use_collision, e.friction, self.use_layers,
+            e.gravity, e.air_drag or e.wind, self.use_pressure, use_collision, e.friction,
+            self.use_layers,
             self.use_self,
         )  # fmt: skip
         self._sweep += n_sub * self.settings.iterations
@@ -920,8 +951,9 @@ class XPBDSolver(ClothSolver):
         the same order, so the same result to the last bit without fast math."""
         e = self.effects
         self._run("fused_sweeps", PK.xpbd_substep_begin, self.x, self.xp, self.v, self.w,
-                  self.drag, self.gravity, self.wind, h, self.pin_idx, self.pin_t0, self.pin_t1,
-                  self.n_pins, s1, self.f_lam, self.lam_b, e.gravity, e.air_drag or e.wind)
+                  self.air, self.gravity, self.wind, h, self.pin_idx, self.pin_t0, self.pin_t1,
+                  self.n_pins, s1, self.f_lam, self.lam_b, e.gravity, e.air_drag or e.wind,
+                  self.use_pressure)
         for it in range(self.settings.iterations):
             reverse = self._sweep % 2
             self._sweep += 1
@@ -945,12 +977,13 @@ class XPBDSolver(ClothSolver):
             self.xp,
             self.v,
             self.w,
-            self.drag,
+            self.air,
             self.gravity,
             self.wind,
             h,
             e.gravity,
             e.air_drag or e.wind,
+            self.use_pressure,
         )
         self._pins(s1)
         for s in self.sets.values():
@@ -1072,12 +1105,13 @@ class ExplicitSolver(ClothSolver):
             self.v,
             self.f,
             self.w,
-            self.drag,
+            self.air,
             self.gravity,
             self.wind,
             h,
             e.gravity,
             e.air_drag or e.wind,
+            self.use_pressure,
         )
         self._limit_strain(h)
         self._pins(s1)
