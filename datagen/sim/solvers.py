@@ -279,9 +279,10 @@ class ClothSolver:
             self.cloth_vertex_faces = _vertex_lists_nd(model.faces.ravel(), self.n)
 
     def _set_pressure_normals(self) -> None:
-        """The pressure drag's directions for the frame: the vertex normals at its start (once a
-        frame: with the normals updated every substep as well, the study's running shirt ended
-        within a few frames of the same result, docs/simulator.md)."""
+        """The pressure drag's directions for the frame: the vertex normals at its start. Once
+        a frame keeps the fused kernel free of the cloth's faces; a probe that took them every
+        substep held the study's running shirt about as well (docs/simulator.md, "Open shirts
+        on the move")."""
         if self.parallel:
             PK.vertex_normals_gathered(self.x, self.cloth_faces, *self.cloth_vertex_faces,
                                        self.pressure_normals)
