@@ -349,7 +349,8 @@ def scene_with_outfit(spec, garment: str | None, fabric: str | None, seed: int):
               default="default", show_default=True, help="Substeps/iterations preset.")
 @click.option("--effects", default="auto", show_default=True,
               help="auto (derived from the scene), all, a comma list of effects, or auto or all "
-                   "with changes (auto,-self_collision).")
+                   "with changes (auto,-self_collision; auto,+pressure_drag adds the air's "
+                   "quadratic drag on the panels).")
 @click.option("--wind", default=None, help="Wind velocity 'x,y,z' in m/s (turns wind on).")
 @click.option("--out", required=True, type=click.Path(dir_okay=False), callback=shard_path,
               help="Output shard (.h5).")

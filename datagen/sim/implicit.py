@@ -77,6 +77,7 @@ class ImplicitSolver(ClothSolver):
         import time
 
         if self.use_pressure:
+            self._pressure_vectors()
             self._run("pressure_drag", K.pressure_drag, self.v, self.air, self.w, self.wind, h)
         t = time.perf_counter()
         start, h_velocity = self._solve(h, s1)

@@ -8,6 +8,7 @@ the CPU default) and coloured Gauss-Seidel (one parallel loop per colour, for GP
 import taichi as ti
 
 from datagen.sim import fold_fields as FF
+from datagen.sim.model import PRESSURE_DRAG
 from datagen.sim.precision import REAL, VEC3, VEC4
 
 vec3 = VEC3
@@ -133,8 +134,9 @@ def lerp3(a: vec3, b: vec3, s: REAL) -> vec3:
 
 # -- integration -------------------------------------------------------------------------------
 # Each vertex's air terms, `air` (V4): its linear drag coefficient (kg/s: Blender's air damping
-# times its area) and its pressure-drag vector (kg/m: 1/2 rho C_d times its area, along its
-# unit normal at the frame's start; zero where pressure drag is off). See air_velocity.
+# times its rest area) and its pressure-drag vector (kg/m: 1/2 rho C_d times its vector area,
+# a third of each adjacent face's area along the face's normal, at the substep's start; zero
+# where pressure drag is off). See air_velocity and pressure_face_add.
 @ti.func
 def air_velocity(vi: vec3, air: VEC4, wi: REAL, wind: vec3, h: REAL, use_air: ti.template(),
                  use_pressure: ti.template()) -> vec3:
@@ -718,14 +720,39 @@ def explicit_update(
         f[i] = vec3(0.0)
 
 
+@ti.func
+def pressure_face_vector(x: V3, a: ti.i32, b: ti.i32, c: ti.i32) -> vec3:
+    """What face (a, b, c) adds to each corner's pressure-drag vector: a third of its area
+    along its normal (|cross| / 6) times 1/2 rho C_d."""
+    return (PRESSURE_DRAG / 6.0) * (x[b] - x[a]).cross(x[c] - x[a])
+
+
+@ti.func
+def pressure_clear_one(i: ti.i32, air: V4):
+    air[i] = VEC4(air[i][0], 0.0, 0.0, 0.0)
+
+
+@ti.func
+def pressure_face_add(a: ti.i32, b: ti.i32, c: ti.i32, x: V3, air: V4):
+    cn = pressure_face_vector(x, a, b, c)
+    add = VEC4(0.0, cn[0], cn[1], cn[2])
+    air[a] += add
+    air[b] += add
+    air[c] += add
+
+
 @ti.kernel
-def set_pressure_normals(nrm: V3, coefficient: F1, air: V4):
-    """The pressure drag's vectors for a frame (air_velocity): each vertex's unit normal `nrm`
-    (vertex_normals; zero where no face uses the vertex) times its coefficient, kg/m."""
-    for i in nrm:
-        a = air[i]
-        cn = nrm[i] * coefficient[i]
-        air[i] = VEC4(a[0], cn[0], cn[1], cn[2])
+def set_pressure_vectors(x: V3, faces: I3, air: V4):
+    """Every vertex's pressure-drag vector at positions x (air_velocity), the faces added in
+    order into their corners: serial backends (parallel_kernels.set_pressure_vectors_gathered
+    sums per vertex instead). The fused frame kernel does the same, in the same order."""
+    ti.loop_config(serialize=True)
+    for i in range(air.shape[0]):
+        pressure_clear_one(i, air)
+    ti.loop_config(serialize=True)
+    for t in range(faces.shape[0]):
+        f = faces[t]
+        pressure_face_add(f[0], f[1], f[2], x, air)
 
 
 @ti.kernel
@@ -1937,7 +1964,8 @@ Q_N_SUB, Q_N_ITER, Q_SWEEP0, Q_N_SETS, Q_N_BENDS, Q_N_PINS, Q_S_MASK = range(7)
 Q_DIMS, Q_L_DIMS = 7, 10  # 3 values each
 Q_N_TETHERS = 13
 Q_N_STIFF_BENDS = 14
-Q_SIZE = 15
+Q_FACES, Q_N_FACES = 15, 16  # the cloth's faces in `adj` (pressure drag): first entry, count
+Q_SIZE = 17
 
 
 @ti.kernel
@@ -2124,6 +2152,12 @@ def xpbd_frame(
     for k in range(n_sub):
         s0 = k / n_sub
         s1 = (k + 1) / n_sub
+        if ti.static(use_pressure):  # as set_pressure_vectors, in the same order
+            for i in range(n):
+                pressure_clear_one(i, air)
+            for t in range(Q[Q_N_FACES]):
+                q = Q[Q_FACES] + 3 * t
+                pressure_face_add(adj[q], adj[q + 1], adj[q + 2], x, air)
         for i in range(n):
             predict_one(i, x, xp, v, w, air, gravity, wind, h, use_gravity, use_air,
                         use_pressure)

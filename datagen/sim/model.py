@@ -47,11 +47,11 @@ DEGENERATE_FRACTION = 0.2
 STRAIN_LIMIT_FRACTION = 0.9
 NO_LIMIT = 1e6  # m: the limit length of springs that have none
 # The pressure drag effect (kernels.air_velocity): air at rest pushes on a panel moving along
-# its normal with 1/2 rho C_d |v_n| v_n per square metre. rho = 1.2 kg/m^3 (air at 20 C,
-# sea level); C_d = 1.2, a thin flat plate broadside to the flow (about 1.17 for a disc or a
-# square, up to 2 for a long strip: the low end, as a garment's panels are curved and their
-# edges leak). Blender's air damping, the linear
-# `air_drag`, stands in for it in CLOTH3D and is 5x weaker at 1 m/s (docs/fabrics.md).
+# its normal with 1/2 rho C_d |v_n| v_n per square metre of its current area. rho = 1.2 kg/m^3
+# (air at 20 C, sea level); C_d = 1.2, a thin flat plate broadside to the flow (about 1.17 for
+# a disc or a square, up to 2 for a long strip: the low end, as a garment's panels are curved
+# and their edges leak). Blender's air damping, the linear `air_drag`, stands in for it in
+# CLOTH3D and is 5x weaker at 1 m/s (docs/fabrics.md).
 AIR_DENSITY = 1.2  # kg/m^3
 PLATE_DRAG_COEFFICIENT = 1.2
 PRESSURE_DRAG = 0.5 * AIR_DENSITY * PLATE_DRAG_COEFFICIENT  # kg/m^3
@@ -81,7 +81,6 @@ class ClothModel:
     bend_stiffness: np.ndarray  # (B,) B_rigidity / (A0 + A1)
     bend_beta: np.ndarray  # (B,) s
     air_drag: np.ndarray  # (V,) kg/s: d * vertex area
-    pressure_drag: np.ndarray  # (V,) kg/m: 1/2 rho C_d * vertex area (PRESSURE_DRAG)
     friction: np.ndarray  # (V,)
     thickness: np.ndarray  # (V,) m
     max_strain: np.ndarray  # (E,)
@@ -244,7 +243,7 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
     xs, rests, faces, masses, gids, names, granges, franges = [], [], [], [], [], [], [], []
     springs, rest_len, kt, kc, beta, kind, elastic, maxs = [], [], [], [], [], [], [], []
     bends, bweights, bstiff, bbeta = [], [], [], []
-    drag, plate, fric, thick, pinned, fabrics = [], [], [], [], [], []
+    drag, fric, thick, pinned, fabrics = [], [], [], [], []
     strain_lens: list[np.ndarray] = []
     degenerate: dict[str, int] = {}
     offset = 0
@@ -322,7 +321,6 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
         bstiff.append(fabric.bending / sa)
         bbeta.append(np.full(len(st), fabric.bending_damping))
         drag.append(fabric.air_drag * vertex_area)
-        plate.append(PRESSURE_DRAG * vertex_area)
         fric.append(np.full(n, fabric.friction))
         thick.append(np.full(n, fabric.thickness))
         if garment.pinned is not None and len(garment.pinned):
@@ -357,7 +355,6 @@ def build_cloth_model(garments: list[tuple[Garment, Fabric]]) -> ClothModel:
         bend_stiffness=np.concatenate(bstiff),
         bend_beta=np.concatenate(bbeta),
         air_drag=np.concatenate(drag),
-        pressure_drag=np.concatenate(plate),
         friction=np.concatenate(fric),
         thickness=np.concatenate(thick),
         max_strain=np.concatenate(maxs),

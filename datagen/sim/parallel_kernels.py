@@ -36,6 +36,7 @@ from datagen.sim.kernels import (
     lerp3,
     limit_after_contact_one,
     predict_one,
+    pressure_face_vector,
     self_cell,
     self_pair_target,
     sort_cells,
@@ -44,7 +45,7 @@ from datagen.sim.kernels import (
     vec3,
     vertex_normal_finish_one,
 )
-from datagen.sim.precision import REAL
+from datagen.sim.precision import REAL, VEC4
 
 # -- the xpbd substep in few launches ------------------------------------------------------------
 # A parallel backend pays for each launch from Python whatever the work (a GPU: 6-12 us on the
@@ -55,6 +56,23 @@ from datagen.sim.precision import REAL
 # which measure each effect's cost.
 
 
+@ti.func
+def pressure_gathered_one(i: ti.i32, x: V3, faces: I3, starts: I1, entries: I1, air: V4):
+    """kernels.set_pressure_vectors for vertex i, summing its own faces (entry 3 t + k: corner
+    k of face t is this vertex), so the sum does not depend on how threads are scheduled."""
+    total = vec3(0.0)
+    for q in range(starts[i], starts[i + 1]):
+        f = faces[entries[q] // 3]
+        total += pressure_face_vector(x, f[0], f[1], f[2])
+    air[i] = VEC4(air[i][0], total[0], total[1], total[2])
+
+
+@ti.kernel
+def set_pressure_vectors_gathered(x: V3, faces: I3, starts: I1, entries: I1, air: V4):
+    for i in air:
+        pressure_gathered_one(i, x, faces, starts, entries, air)
+
+
 @ti.kernel
 def xpbd_substep_begin(
     x: V3,
@@ -62,6 +80,9 @@ def xpbd_substep_begin(
     v: V3,
     w: F1,
     air: V4,
+    faces: I3,
+    face_starts: I1,
+    face_entries: I1,
     gravity: vec3,
     wind: vec3,
     h: REAL,
@@ -76,8 +97,12 @@ def xpbd_substep_begin(
     use_air: ti.template(),
     use_pressure: ti.template(),
 ):
-    """kernels.predict, then the pins at their targets (kernels.apply_pins), then the spring
-    and bending multipliers at zero."""
+    """The pressure drag's vectors (set_pressure_vectors_gathered, where it is on), then
+    kernels.predict, then the pins at their targets (kernels.apply_pins), then the spring and
+    bending multipliers at zero."""
+    if ti.static(use_pressure):
+        for i in x:
+            pressure_gathered_one(i, x, faces, face_starts, face_entries, air)
     for i in x:
         predict_one(i, x, xp, v, w, air, gravity, wind, h, use_gravity, use_air,
                     use_pressure)

@@ -269,26 +269,27 @@ class ClothSolver:
     # -- pressure drag -------------------------------------------------------------------------
     def _init_pressure_drag(self) -> None:
         self.use_pressure = bool(self.effects.pressure_drag)
+        self.cloth_faces = _nd(ti.math.ivec3, np.zeros((1, 3), np.int32))  # placeholders
+        self.cloth_vertex_faces = (_nd(ti.i32, np.zeros(2, np.int32)),) * 2
         if not self.use_pressure:
             return
-        model = self.model
-        self.pressure_coefficient = _nd(REAL, model.pressure_drag.astype(NP_REAL))
-        self.pressure_normals = ti.ndarray(VEC3, self.n)
-        self.cloth_faces = _nd(ti.math.ivec3, model.faces.astype(np.int32))
+        self.cloth_faces = _nd(ti.math.ivec3, self.model.faces.astype(np.int32))
         if self.parallel:
-            self.cloth_vertex_faces = _vertex_lists_nd(model.faces.ravel(), self.n)
+            self.cloth_vertex_faces = _vertex_lists_nd(self.model.faces.ravel(), self.n)
 
-    def _set_pressure_normals(self) -> None:
-        """The pressure drag's directions for the frame: the vertex normals at its start. Once
-        a frame keeps the fused kernel free of the cloth's faces; a probe that took them every
-        substep held the study's running shirt about as well (docs/simulator.md, "Open shirts
-        on the move")."""
+    def _pressure_vectors(self) -> None:
+        """Each vertex's pressure-drag vector at the substep's start (kernels.air_velocity):
+        every substep, as the panels turn within a frame (set once a frame, the study's
+        running shirt slid sooner) and so that the motion does not depend on the output
+        rate."""
+        if not self.use_pressure:
+            return
         if self.parallel:
-            PK.vertex_normals_gathered(self.x, self.cloth_faces, *self.cloth_vertex_faces,
-                                       self.pressure_normals)
+            self._run("pressure_drag", PK.set_pressure_vectors_gathered, self.x,
+                      self.cloth_faces, *self.cloth_vertex_faces, self.air)
         else:
-            K.vertex_normals(self.x, self.cloth_faces, self.pressure_normals)
-        K.set_pressure_normals(self.pressure_normals, self.pressure_coefficient, self.air)
+            self._run("pressure_drag", K.set_pressure_vectors, self.x, self.cloth_faces,
+                      self.air)
 
     # -- strain limiting (force-based solvers) -----------------------------------------------
     def _init_strain_limit(self) -> None:
@@ -407,9 +408,7 @@ class ClothSolver:
         (17 cm a frame in a run), and a surface held still for the frame would drag the outer
         garment behind it and then jump through it. With `search`, outer vertices are searched
         against it afresh (the frames the body is searched, as between those they follow the
-        inner triangles they track). With pressure drag, its directions for the frame."""
-        if self.use_pressure:
-            self._run("pressure_drag", self._set_pressure_normals)
+        inner triangles they track)."""
         if not self.use_layers:
             return
         x, v = self.get_state()
@@ -657,9 +656,14 @@ class XPBDSolver(ClothSolver):
             + [np.zeros(0, np.int64)]))
         ptr, order = _vertex_lists(pairs[visit].T.ravel(), self.n)  # both ends
         spring = np.tile(visit, 2)
-        self.limit_adj = _nd(
-            ti.i32, np.concatenate([ptr, spring[order], visit]).astype(np.int32)
-        )
+        adj = [ptr, spring[order], visit]
+        # The fused frame kernel reads the cloth's faces here (pressure drag): it has no
+        # argument left for an array of their own.
+        self.adj_faces = sum(len(a) for a in adj)
+        self.n_adj_faces = len(self.model.faces) if self.use_pressure else 0
+        if self.use_pressure:
+            adj.append(self.model.faces.ravel())
+        self.limit_adj = _nd(ti.i32, np.concatenate(adj).astype(np.int32))
         self.limit_lists = _nd(ti.i32, np.zeros(5 * self.n + 2, np.int32))
 
     def _init_coloured_limit(self) -> None:
@@ -872,6 +876,8 @@ class XPBDSolver(ClothSolver):
         Q[K.Q_N_STIFF_BENDS] = self.n_stiff_bends
         Q[K.Q_N_PINS] = self.n_pins
         Q[K.Q_N_TETHERS] = self.n_tethers
+        Q[K.Q_FACES] = self.adj_faces
+        Q[K.Q_N_FACES] = self.n_adj_faces
         Q[K.Q_S_MASK] = self.s_mask
         Q[K.Q_DIMS : K.Q_DIMS + 3] = c.dims_np
         Q[K.Q_L_DIMS : K.Q_L_DIMS + 3] = lc.dims_np
@@ -952,9 +958,9 @@ class XPBDSolver(ClothSolver):
         the same order, so the same result to the last bit without fast math."""
         e = self.effects
         self._run("fused_sweeps", PK.xpbd_substep_begin, self.x, self.xp, self.v, self.w,
-                  self.air, self.gravity, self.wind, h, self.pin_idx, self.pin_t0, self.pin_t1,
-                  self.n_pins, s1, self.f_lam, self.lam_b, e.gravity, e.air_drag or e.wind,
-                  self.use_pressure)
+                  self.air, self.cloth_faces, *self.cloth_vertex_faces, self.gravity,
+                  self.wind, h, self.pin_idx, self.pin_t0, self.pin_t1, self.n_pins, s1,
+                  self.f_lam, self.lam_b, e.gravity, e.air_drag or e.wind, self.use_pressure)
         for it in range(self.settings.iterations):
             reverse = self._sweep % 2
             self._sweep += 1
@@ -971,6 +977,7 @@ class XPBDSolver(ClothSolver):
         """The substep's prediction, pins and iterations, a kernel per effect (each effect's
         cost timed)."""
         e = self.effects
+        self._pressure_vectors()
         self._run(
             "gravity" if e.gravity else "air_drag",
             K.predict,
@@ -1086,6 +1093,7 @@ class ExplicitSolver(ClothSolver):
 
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
         e = self.effects
+        self._pressure_vectors()
         for name, s in self.sets.items():
             args = (self.x, self.v, self.f, s.springs, s.rest, s.k_t, s.k_c, s.beta)
             if self.parallel:
