@@ -204,7 +204,7 @@ class ClothSolver:
         self.w_np = w
         self.w = _nd(REAL, w)
         # Each vertex's air terms (kernels.air_velocity): the linear drag, and the pressure
-        # drag's vector, set per frame from the vertex normals where that effect is on.
+        # drag's vector, set every substep from the faces where that effect is on.
         air = np.zeros((n, 4), NP_REAL)
         air[:, 0] = model.air_drag
         self.air = _nd(VEC4, air)
@@ -279,9 +279,9 @@ class ClothSolver:
 
     def _pressure_vectors(self) -> None:
         """Each vertex's pressure-drag vector at the substep's start (kernels.air_velocity):
-        every substep, as the panels turn within a frame (set once a frame, the study's
-        running shirt slid sooner) and so that the motion does not depend on the output
-        rate."""
+        every substep, as the panels turn within a frame and so that the motion does not
+        depend on the output rate (set once an output frame, 30 and 60 fps parted by 1.6 mm
+        on a sheet dropped onto a sphere)."""
         if not self.use_pressure:
             return
         if self.parallel:
