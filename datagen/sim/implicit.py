@@ -76,8 +76,8 @@ class ImplicitSolver(ClothSolver):
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
         import time
 
+        self._pressure_vectors()
         if self.use_pressure:
-            self._pressure_vectors()
             self._run("pressure_drag", K.pressure_drag, self.v, self.air, self.w, self.wind, h)
         t = time.perf_counter()
         start, h_velocity = self._solve(h, s1)

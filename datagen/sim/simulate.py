@@ -886,9 +886,9 @@ class _Simulation:
 
 
 # The per-effect kernels whose work a parallel backend's fused sweeps do (solvers.XPBDSolver.
-# _coloured_substep: prediction, pins, bending and every spring set).
-SWEEP_COSTS = ("gravity", "air_drag", "pins", "bending", "stretch", "shear", "elastic",
-               "seams", "stretch_loops")
+# _coloured_substep: pressure drag's vectors, prediction, pins, bending and every spring set).
+SWEEP_COSTS = ("pressure_drag", "gravity", "air_drag", "pins", "bending", "stretch", "shear",
+               "elastic", "seams", "stretch_loops")
 
 
 def _effect_costs(costs: dict[str, float]) -> dict[str, float]:
