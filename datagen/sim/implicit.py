@@ -78,7 +78,8 @@ class ImplicitSolver(ClothSolver):
 
         self._pressure_vectors()
         if self.use_pressure:
-            self._run("pressure_drag", K.pressure_drag, self.v, self.air, self.w, self.wind, h)
+            self._run("pressure_drag", K.pressure_drag, self.v, self.air, self.w, self.wind, h,
+                      self.use_pressure)
         t = time.perf_counter()
         start, h_velocity = self._solve(h, s1)
         self.costs["implicit_solve"] += time.perf_counter() - t

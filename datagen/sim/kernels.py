@@ -8,7 +8,7 @@ the CPU default) and coloured Gauss-Seidel (one parallel loop per colour, for GP
 import taichi as ti
 
 from datagen.sim import fold_fields as FF
-from datagen.sim.model import PRESSURE_DRAG
+from datagen.sim.model import PRESSURE_DRAG, PRESSURE_OFF, PRESSURE_OUTER_FACE
 from datagen.sim.precision import REAL, VEC3, VEC4
 
 vec3 = VEC3
@@ -143,15 +143,19 @@ def air_velocity(vi: vec3, air: VEC4, wi: REAL, wind: vec3, h: REAL, use_air: ti
     """The velocity after a step h of air drag, relative to the wind: the linear drag, then the
     pressure drag -c |v_n| v_n n on the velocity's normal part v_n. Each implicit in the velocity
     it damps (with |v_n| taken at the step's start for the quadratic term), so neither can
-    reverse a velocity at any step."""
+    reverse a velocity at any step. `use_pressure` (model.PRESSURE_*): off, on both faces, or
+    on the outer face only (cloth on a body: only a panel moving along its outward normal
+    meets the free stream)."""
     if ti.static(use_air):
         vi = wind + (vi - wind) / (1.0 + h * air[0] * wi)
-    if ti.static(use_pressure):
+    if ti.static(use_pressure != PRESSURE_OFF):
         cn = vec3(air[1], air[2], air[3])
         c = cn.norm()
         if c > 0.0:
             n = cn / c
             vn = (vi - wind).dot(n)
+            if ti.static(use_pressure == PRESSURE_OUTER_FACE):
+                vn = ti.max(vn, 0.0)  # the inner face is sheltered by the body
             vi += (vn / (1.0 + h * c * ti.abs(vn) * wi) - vn) * n
     return vi
 
@@ -756,12 +760,12 @@ def set_pressure_vectors(x: V3, faces: I3, air: V4):
 
 
 @ti.kernel
-def pressure_drag(v: V3, air: V4, w: F1, wind: vec3, h: REAL):
+def pressure_drag(v: V3, air: V4, w: F1, wind: vec3, h: REAL, use_pressure: ti.template()):
     """Pressure drag alone (air_velocity) for a step h: the implicit solver's, split off before
     its Newton solve, which takes the linear drag into its potential."""
     for i in v:
         if w[i] > 0.0:
-            v[i] = air_velocity(v[i], air[i], w[i], wind, h, False, True)
+            v[i] = air_velocity(v[i], air[i], w[i], wind, h, False, use_pressure)
 
 
 # -- pins --------------------------------------------------------------------------------------

@@ -55,6 +55,16 @@ NO_LIMIT = 1e6  # m: the limit length of springs that have none
 AIR_DENSITY = 1.2  # kg/m^3
 PLATE_DRAG_COEFFICIENT = 1.2
 PRESSURE_DRAG = 0.5 * AIR_DENSITY * PLATE_DRAG_COEFFICIENT  # kg/m^3
+# How pressure drag treats a panel's two faces (the solvers' `use_pressure`, a compile-time
+# switch of the kernels). Cloth worn on a body winds its faces outward (templates are checked
+# for it, garment.template.check_template; scenes.py's sheets and tubes face away from their
+# colliders), and its inner face looks onto the body, the air trapped against it and, downwind,
+# the body's wake, which all move with the body: the free stream's quadratic drag meets only
+# its outer face. So with body collision on, a panel takes pressure drag only while it moves
+# outward relative to the air (v_n > 0, pushed back towards the body); free cloth takes it on
+# both faces. Without the shelter a runner's strap top was pulled off its back by its own
+# wake (docs/simulator.md, "Open shirts on the move").
+PRESSURE_OFF, PRESSURE_BOTH_FACES, PRESSURE_OUTER_FACE = 0, 1, 2
 
 
 @dataclass

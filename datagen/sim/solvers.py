@@ -27,7 +27,16 @@ from datagen.sim import kernels as K
 from datagen.sim import parallel_kernels as PK
 from datagen.sim.backend import init_taichi
 from datagen.sim.effects import Effects
-from datagen.sim.model import NO_LIMIT, SEAM, SHEAR, STRUCTURAL, ClothModel
+from datagen.sim.model import (
+    NO_LIMIT,
+    PRESSURE_BOTH_FACES,
+    PRESSURE_OFF,
+    PRESSURE_OUTER_FACE,
+    SEAM,
+    SHEAR,
+    STRUCTURAL,
+    ClothModel,
+)
 from datagen.sim.precision import NP_REAL, REAL, VEC3, VEC4
 
 # A bend is stiff at step h when its compliance over h^2 is below its generalised inverse mass
@@ -268,7 +277,10 @@ class ClothSolver:
 
     # -- pressure drag -------------------------------------------------------------------------
     def _init_pressure_drag(self) -> None:
-        self.use_pressure = bool(self.effects.pressure_drag)
+        # model.PRESSURE_*: cloth on a body meets the free stream on its outer face only.
+        self.use_pressure = (PRESSURE_OFF if not self.effects.pressure_drag
+                             else PRESSURE_OUTER_FACE if self.effects.body_collision
+                             else PRESSURE_BOTH_FACES)
         self.cloth_faces = _nd(ti.math.ivec3, np.zeros((1, 3), np.int32))  # placeholders
         self.cloth_vertex_faces = (_nd(ti.i32, np.zeros(2, np.int32)),) * 2
         if not self.use_pressure:
