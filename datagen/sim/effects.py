@@ -9,9 +9,10 @@ The rules (docs/simulator.md, "Effects"):
 - elastic rings: only when a garment has elastic loops;
 - pins: only when a garment has pinned vertices (waistbands attached to the body);
 - wind: only when the scene asks for it;
-- pressure drag (air pushing on each panel, quadratic in its speed along its normal): only when
-  asked (`auto,+pressure_drag`): Blender's linear air drag is CLOTH3D's model of the air, and
-  docs/simulator.md ("Open shirts on the move") has what the quadratic one changes.
+- pressure drag (air pushing on each panel, quadratic in its speed along its normal; on cloth
+  worn on a body, on the panels' outer faces only): only when asked (`auto,+pressure_drag`):
+  Blender's linear air drag is CLOTH3D's model of the air, and docs/simulator.md ("Open shirts
+  on the move") has what the quadratic one changes.
 `--effects all` turns everything on that the scene can support; an explicit list overrides;
 `auto` or `all` followed by `-name` / `+name` items changes that base (`auto,-self_collision`).
 """
