@@ -147,13 +147,19 @@ def test_cloth_dropped_on_a_sphere_stays_outside():
     assert result.qa["deep_share"].max() == 0.0
 
 
+def _outer_face_down(sheet):
+    """grid_sheet's sheet wound the other way, its outer face down: over a body only the outer
+    face meets the pressure drag (model.PRESSURE_OUTER_FACE), so a sheet that falls onto a
+    body meets the air with it."""
+    sheet.faces = sheet.faces[:, [0, 2, 1]].copy()
+    return sheet
+
+
 def _sheet_dropped_on_a_sphere_at(fps: float, seconds: float, substeps: int | None = None,
                                   effects: str = "auto"):
     sheet = grid_sheet(24, 0.8, 0.45)
     if "pressure_drag" in effects:
-        # Outer face down, into the air it falls through: over a body the inner face is
-        # sheltered from the pressure drag (model.PRESSURE_OUTER_FACE).
-        sheet.faces = sheet.faces[:, [0, 2, 1]].copy()
+        sheet = _outer_face_down(sheet)
     sv, sf = icosphere(0.25, 4)
     frames = np.repeat(sv[None], int(round(seconds * fps)) + 1, axis=0)
     track = ColliderTrack(frames, sf, np.ones(len(sf), dtype=bool), fps)
@@ -486,6 +492,8 @@ def test_pressure_drag_on_cloth_over_a_body_meets_only_its_outer_face(solver):
     never reached), falls with its outer face down, into the air, and settles at the same
     1.430 m/s as free cloth; turned over, the air meets its inner face and it falls freely, bit
     for bit as without the effect. Free cloth (no body) takes the drag on both faces (above)."""
+    import trimesh
+
     effects = ("gravity", "stretch", "shear", "bending", "body_collision")
     sv, sf = icosphere(0.25, 2)
     track = ColliderTrack(np.repeat(sv[None] - np.array([0.0, 0.0, 40.0]), 21, axis=0), sf,
@@ -497,11 +505,9 @@ def test_pressure_drag_on_cloth_over_a_body_meets_only_its_outer_face(solver):
         return simulate([sheet], track, options).vertices[sheet.name].astype(np.float64)
 
     face_up = grid_sheet(10, 0.5, 5.0)
-    normals = np.cross(*(face_up.vertices[face_up.faces[:, k]] - face_up.vertices[
-        face_up.faces[:, 0]] for k in (1, 2)))
+    normals = trimesh.Trimesh(face_up.vertices, face_up.faces, process=False).face_normals
     assert (normals[:, 2] > 0).all()  # grid_sheet's outer face is its upper one
-    face_down = grid_sheet(10, 0.5, 5.0)
-    face_down.faces = face_down.faces[:, [0, 2, 1]].copy()
+    face_down = _outer_face_down(grid_sheet(10, 0.5, 5.0))
     outer = fall(face_down, ("pressure_drag",))
     speed = -np.diff(outer[:, :, 2].mean(axis=1)) * 30.0
     assert speed[-3:] == pytest.approx(1.430, rel=0.02)
@@ -518,10 +524,7 @@ def test_profiled_frames_compute_the_fused_frames_pressure_drag(request):
     the effect (which must change where it lands)."""
     if in_ieee_process(request):
         return
-    sheet = grid_sheet(12, 0.5, 0.45)
-    # Wound with its outer face down, so that the falling sheet meets the air on that face
-    # (over a body the inner face is sheltered, and upper-face-out it would fall as without).
-    sheet.faces = sheet.faces[:, [0, 2, 1]].copy()
+    sheet = _outer_face_down(grid_sheet(12, 0.5, 0.45))
     sv, sf = icosphere(0.25, 3)
     track = ColliderTrack(np.repeat(sv[None], 9, axis=0), sf, np.ones(len(sf), bool))
     runs = {}
