@@ -351,7 +351,9 @@ def scene_with_outfit(spec, garment: str | None, fabric: str | None, seed: int):
               help="auto (derived from the scene), all, a comma list of effects, or auto or all "
                    "with changes (auto,-self_collision; auto,+pressure_drag adds the air's "
                    "quadratic drag on the panels).")
-@click.option("--wind", default=None, help="Wind velocity 'x,y,z' in m/s (turns wind on).")
+@click.option("--wind", default=None,
+              help="Wind velocity 'x,y,z' in m/s (turns wind on, and with it the air's "
+                   "pressure on the panels, pressure_drag).")
 @click.option("--out", required=True, type=click.Path(dir_okay=False), callback=shard_path,
               help="Output shard (.h5).")
 @click.option("--export-obj", type=click.Path(file_okay=False),

@@ -10,9 +10,11 @@ The rules (docs/simulator.md, "Effects"):
 - pins: only when a garment has pinned vertices (waistbands attached to the body);
 - wind: only when the scene asks for it;
 - pressure drag (air pushing on each panel, quadratic in its speed along its normal; on cloth
-  worn on a body, on the panels' outer faces only): only when asked (`auto,+pressure_drag`):
-  Blender's linear air drag is CLOTH3D's model of the air, and docs/simulator.md ("Open shirts
-  on the move") has what the quadratic one changes.
+  worn on a body, on the panels' outer faces only): with wind, and otherwise only when asked
+  (`auto,+pressure_drag`). Wind is air pushing on panels: on cotton facing a 3 m/s wind the
+  linear drag alone pushes 0.45 N/m^2, the pressure 6.5 (docs/fabrics.md). In still air,
+  Blender's linear drag is CLOTH3D's model of the air, and docs/simulator.md ("Open shirts on
+  the move") has what the quadratic one changes there.
 `--effects all` turns everything on that the scene can support; an explicit list overrides;
 `auto` or `all` followed by `-name` / `+name` items changes that base (`auto,-self_collision`).
 """
@@ -88,6 +90,7 @@ def auto_effects(scene: SceneContent) -> Effects:
         self_collision=loose,
         elastic=scene.has_elastic,
         pins=scene.has_pins,
+        pressure_drag=scene.wants_wind,
         wind=scene.wants_wind,
     )
 
