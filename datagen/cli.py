@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 from pathlib import Path
 
 import click
@@ -25,6 +26,9 @@ def body_rejection_hint(pipeline: bool) -> str:
             "bounds (docs/recipes.md, `body`); another --seed draws another subject")
 
 
+LOG_REDRAW_S = 10.0  # seconds between a progress bar's redraws when stderr is a file
+
+
 class FrameBar:
     """A tqdm bar (on stderr) over the frames of each simulation run that it hears of
     (datagen.sim.progress): a new bar for each run, so an escalated sequence shows the run it
@@ -38,8 +42,11 @@ class FrameBar:
 
         if self.bar is None or done == 1:  # a run's first frame: a new run
             self.close()
+            # In a log (stderr not a terminal) each redraw is another ~100 characters, one
+            # per frame: a redraw every ten seconds tells a log reader as much.
             self.bar = tqdm(total=total, unit="frame", desc=f"simulating ({settings})",
-                            dynamic_ncols=True)
+                            dynamic_ncols=True,
+                            mininterval=0.1 if sys.stderr.isatty() else LOG_REDRAW_S)
         self.bar.update(done - self.bar.n)
 
     def close(self) -> None:

@@ -148,6 +148,31 @@ def test_datagen_simulate_shows_a_new_bar_for_each_run(capsys):
     assert "simulating (xpbd reference 40x8, sor 1): 100%" in err and "3/3" in err
 
 
+def test_datagen_simulate_bar_redraws_rarely_into_a_log(capsys, monkeypatch):
+    """With stderr a file (pytest's capture is one) the frame bar redraws at most every
+    cli.LOG_REDRAW_S seconds instead of every frame: 20 frames of 0.12 s give its first and
+    last state only, where a terminal's bar (a redraw after 0.1 s) draws every frame."""
+    import time
+
+    from datagen import cli
+
+    assert not sys.stderr.isatty()
+    bar = cli.FrameBar()
+    for k in range(1, 21):
+        time.sleep(0.12)
+        bar(k, 20, "xpbd default 20x4, sor 1.6")
+    bar.close()
+    err = capsys.readouterr().err
+    assert "20/20" in err and err.count("simulating (") <= 3
+    monkeypatch.setattr(cli, "LOG_REDRAW_S", 0.1)  # a terminal's interval
+    bar = cli.FrameBar()
+    for k in range(1, 21):
+        time.sleep(0.12)
+        bar(k, 20, "xpbd default 20x4, sor 1.6")
+    bar.close()
+    assert capsys.readouterr().err.count("simulating (") >= 15
+
+
 def test_a_run_within_its_bounds_is_not_simulated_again(monkeypatch):
     garments, track = _sheet_on_sphere(monkeypatch, 0.25)
     calls = _counting_simulate(monkeypatch)
