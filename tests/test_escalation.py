@@ -156,21 +156,19 @@ def test_datagen_simulate_bar_redraws_rarely_into_a_log(capsys, monkeypatch):
 
     from datagen import cli
 
+    def twenty_frames() -> str:
+        bar = cli.FrameBar()
+        for k in range(1, 21):
+            time.sleep(0.12)
+            bar(k, 20, "xpbd default 20x4, sor 1.6")
+        bar.close()
+        return capsys.readouterr().err
+
     assert not sys.stderr.isatty()
-    bar = cli.FrameBar()
-    for k in range(1, 21):
-        time.sleep(0.12)
-        bar(k, 20, "xpbd default 20x4, sor 1.6")
-    bar.close()
-    err = capsys.readouterr().err
+    err = twenty_frames()
     assert "20/20" in err and err.count("simulating (") <= 3
     monkeypatch.setattr(cli, "LOG_REDRAW_S", 0.1)  # a terminal's interval
-    bar = cli.FrameBar()
-    for k in range(1, 21):
-        time.sleep(0.12)
-        bar(k, 20, "xpbd default 20x4, sor 1.6")
-    bar.close()
-    assert capsys.readouterr().err.count("simulating (") >= 15
+    assert twenty_frames().count("simulating (") >= 15
 
 
 def test_a_run_within_its_bounds_is_not_simulated_again(monkeypatch):
