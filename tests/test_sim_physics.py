@@ -726,17 +726,55 @@ def test_an_unstable_frame_is_redone_with_more_substeps_until_it_is_stable():
     """At 20 substeps the explicit step is unstable for this sheet: a frame that starts at
     rest ends with 0.37 J, every vertex at 5-10 m/s, under the speed limit (15 m/s) and the
     absolute energy guard. The energy-gain guard bounds what gravity (the only thing moving
-    it) can give in a frame and catches it: every frame is redone at 40 substeps, so the run
+    it) can give in a frame and catches it: the frame is redone at 40 substeps, so the run
     is the 40-substep one. (Before the guard, 11 frames tripped the speed limit, the others
-    were kept, and the swing ended with 24x its kinetic energy.)"""
+    were kept, and the swing ended with 24x its kinetic energy.) The frames after a retry
+    start at 40 (RETRY_HOLD, 10 frames), and 20 is tried again when the hold runs out: at
+    frame 11, which fails and doubles the hold. So 2 retries in 20 frames, not 20 (every
+    frame paid its failed coarse run until 2026-12-06)."""
     sheet, coarse = _explicit_hanging_sheet(20)
     _, fine = _explicit_hanging_sheet(40)
-    assert coarse.report["retries"] == 20
+    assert coarse.report["retries"] == 2
     assert coarse.report["frame_substeps_max"] == 40
     np.testing.assert_allclose(coarse.vertices[sheet.name], fine.vertices[sheet.name],
                                atol=1e-6)
     # The swing's kinetic energy never exceeds the potential energy it gave up (0.3 m at most).
     assert coarse.qa["kinetic_energy"].max() < G * 0.3 * 0.15 * 0.3**2
+
+
+def test_a_retried_level_is_held_then_stepped_down_and_a_failed_step_down_doubles_the_hold(
+        monkeypatch):
+    """The schedule of substeps around passing instabilities. The guard is made to trip at
+    the base 40 substeps in frames 3, 14 and 38 (the stable hanging sheet of the test above,
+    so only the schedule changes). Frame 3 is redone at 80 and frames 4-13 start at 80 (the
+    hold, RETRY_HOLD frames); frame 14 tries 40 again and trips, so the hold doubles (frames
+    15-34 at 80); frame 35 steps down and stays down; frame 38 trips and holds 10 frames
+    again (the failed step downs are counted in a row). Each frame runs once at its start
+    level, and once more where it trips."""
+    from datagen.sim import simulate as sim_module
+
+    runs: list[tuple[int, int]] = []
+    original = sim_module._Simulation._frame
+
+    def frame(self, solver, f0, f1, profile, search=True):
+        reason = original(self, solver, f0, f1, profile, search)
+        sub = solver.settings.substeps
+        runs.append((f1, sub))
+        if sub == 40 and f1 in (3, 14, 38):
+            return "made to trip at 40 substeps"
+        return reason
+
+    monkeypatch.setattr(sim_module._Simulation, "_frame", frame)
+    sheet = grid_sheet(8, 0.3, 1.0)
+    sheet.pinned = np.array([0, 8])
+    result = simulate([sheet], None, SimOptions(solver="explicit", substeps=40, frames=40,
+                                                settle_seconds=0.0, strain_refinements=0))
+    expected = [(1, 40), (2, 40), (3, 40), (3, 80)] + [(f, 80) for f in range(4, 14)]
+    expected += [(14, 40), (14, 80)] + [(f, 80) for f in range(15, 35)]
+    expected += [(f, 40) for f in range(35, 39)] + [(38, 80), (39, 80), (40, 80)]
+    assert runs == expected
+    assert result.report["retries"] == 3
+    assert result.report["frame_substeps_max"] == 80
 
 
 def test_a_frame_unstable_after_the_last_retry_rejects_the_sequence_with_its_reason():

@@ -4,7 +4,9 @@ Timeline: the outfit settles on the body in its rest pose, follows the lead-in f
 sequence's first frame, then the sequence; frames after the lead-in are the output (at the body
 sequence's frame rate). Each frame is guarded: non-finite positions, runaway speeds or a kinetic
 energy blow-up make the frame run again from its start with twice, then four times the substeps;
-a frame that still fails rejects the sequence with the reason instead of writing it.
+a frame that still fails rejects the sequence with the reason instead of writing it. The frames
+after a retry start at the substeps that held, for a while, before the coarser step is tried
+again (RETRY_HOLD).
 """
 
 from __future__ import annotations
@@ -83,6 +85,11 @@ PRESET_FPS = 30.0
 # substeps, not 21).
 RATE_TOLERANCE = 0.01
 MAX_RETRIES = 2
+# A frame that needed a retry to stay stable leaves the next ones starting at the substeps that
+# held, for RETRY_HOLD frames (at PRESET_FPS), before the base substeps are tried again; each
+# failed try doubles the hold. A step too coarse for the scene (the explicit draft on a walking
+# t-shirt) otherwise fails once every frame: 49 retries in 49 frames, 1.5x the run's cost.
+RETRY_HOLD = 10
 REFINE_REST = 10  # frames (at PRESET_FPS) without strain refinement after one that did not help
 # ...unless a frame ends with this multiple of the previous frame's over-strained share: a new
 # event (a kick), not the persistent, slowly changing strain of a garment smaller than its body.
@@ -533,6 +540,14 @@ class _Simulation:
             else:  # no body to hold them: pinned vertices stay where they start
                 self.fixed_pins = self.model.x0[self.model.pinned].copy()
         self.retries = 0
+        # Where the next frame starts (_advance): the doublings of the substeps that the last
+        # retry needed, the frames left before one fewer is tried, and how many such tries
+        # in a row have failed (each doubles the hold).
+        self.start_level = 0
+        self.hold_left = 0
+        self.failed_step_downs = 0
+        self.stepping_down = False
+        self.retry_hold_frames = interval_at(self.fps, RETRY_HOLD)
         self.strain_refinements = 0
         self.refine_rest = 0  # frames left before strain refinement is tried again
         self.last_share = 0.0  # the previous frame's over-strained share (while resting)
@@ -729,28 +744,30 @@ class _Simulation:
         tracking0 = solver.get_tracking()
         every = self.options.profile_every
         search = step % self.search_every == 0
-        reason = self._frame(solver, f0, f1, every > 0 and step % every == 0, search)
+        start = level = self.start_level
+        current = solver if start == 0 else self._refined(start, x0, v0, tracking0)
+        reason = self._frame(current, f0, f1, every > 0 and step % every == 0, search)
         limit = self.options.strain_refinements if refine else 0
         resting = self.refine_rest > 0
         self.refine_rest = max(self.refine_rest - 1, 0)
-        level = 0
-        current = solver
         stable: tuple[int, object] | None = None  # the last stable run: (level, solver)
+        held = None  # the level at which the frame first ran stable
         first = None  # the share over the bound before any refinement
         while True:
             if reason is None:
                 stable = (level, current)
+                held = level if held is None else held
                 if limit == 0:
                     break
                 share = self._over_strain(current)
                 first = share if first is None else first
                 if share <= STRAIN_SHARE_MAX:
                     break
-                if resting and level == 0:
+                if resting and level == start:
                     if share <= REST_BREAK * self.last_share:
                         break
                     self.refine_rest = 0  # the strain jumped: a new event, refine it
-                if level >= limit:
+                if level - start >= limit:
                     if share > 0.8 * first:
                         self.refine_rest = self.refine_rest_frames
                     break
@@ -771,12 +788,7 @@ class _Simulation:
             else:
                 self.retries += 1
             level += 1
-            sub = self.substeps * 2**level
-            if sub not in self.solvers:
-                self.solvers[sub] = self._solver(sub)
-            current = self.solvers[sub]
-            self._set_state(current, x0, v0)
-            current.set_tracking(tracking0)
+            current = self._refined(level, x0, v0, tracking0)
             reason = self._frame(current, f0, f1, False)
         if first is not None:
             self.last_share = share
@@ -785,6 +797,39 @@ class _Simulation:
             self._set_state(solver, x, v)
             solver.set_tracking(current.get_tracking())
         self.frame_substeps.append(self.substeps * 2**level)
+        self._hold_retry_level(start, held)
+
+    def _refined(self, level: int, x0: np.ndarray, v0: np.ndarray, tracking0):
+        """The solver at `level` doublings of the substeps (made on first use), set to the
+        frame's start."""
+        sub = self.substeps * 2**level
+        if sub not in self.solvers:
+            self.solvers[sub] = self._solver(sub)
+        current = self.solvers[sub]
+        self._set_state(current, x0, v0)
+        current.set_tracking(tracking0)
+        return current
+
+    def _hold_retry_level(self, start: int, held: int) -> None:
+        """Where the next frame starts, after a frame that started at `start` doublings and
+        first ran stable at `held` (RETRY_HOLD): a retried frame holds its level; a held
+        level steps down by one when its hold runs out; a step down that fails doubles the
+        next hold. Strain refinements do not hold (they have their own rest)."""
+        if held > start:
+            if self.stepping_down:
+                self.failed_step_downs += 1
+            self.start_level = held
+            self.hold_left = self.retry_hold_frames * 2**self.failed_step_downs
+        elif self.stepping_down:  # the step down held: stay here for a hold of its own
+            self.failed_step_downs = 0
+            self.hold_left = self.retry_hold_frames
+        if held == start and start > 0:
+            self.hold_left -= 1
+            if self.hold_left <= 0:
+                self.start_level = start - 1
+                self.stepping_down = True
+                return
+        self.stepping_down = False
 
     def _strain(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """_fabric_strain of positions read by _state, computed once for them (they are
