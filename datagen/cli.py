@@ -412,6 +412,8 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, fp
     with ShardWriter(out) as writer:
         write_record(writer, record)
     sim = record.sim
+    from datagen.sim.simulate import finer_steps_note
+
     rep = sim.report
     names = ", ".join(f"{g.name} ({g.meta.get('variant', g.category)}, {g.fabric}, "
                       f"{len(g.vertices)} vertices)" for g in record.garments)
@@ -420,7 +422,8 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, fp
         f"  {rep['solver']} {rep['substeps']}x{rep['iterations']}, effects: "
         f"{', '.join(rep['effects'])}\n"
         f"  simulated {rep['simulated_seconds_per_wall_second']:.2f} s per wall-clock second "
-        f"({rep['wall_time_s']:.1f} s), retries {rep['retries']}; QA: max strain "
+        f"({rep['wall_time_s']:.1f} s), retries {rep['retries']}"
+        f"{finer_steps_note(rep)}; QA: max strain "
         f"{float(sim.qa['strain_p999'].max()):.3f} (99.9th pct), at most "
         f"{100 * float(sim.qa['over_strain_share'].max()):.3f} % of springs over their "
         f"fabric's max_strain, deepest penetration share "

@@ -15,7 +15,13 @@ from datagen.sim.effects import Effects
 from datagen.sim.fabrics import FABRICS, get_fabric
 from datagen.sim.model import build_cloth_model, edges_of
 from datagen.sim.scenes import grid_sheet, icosphere
-from datagen.sim.simulate import ColliderTrack, SimOptions, scene_content, simulate
+from datagen.sim.simulate import (
+    ColliderTrack,
+    SimOptions,
+    finer_steps_note,
+    scene_content,
+    simulate,
+)
 from datagen.sim.solvers import SolverSettings, make_solver
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -736,6 +742,10 @@ def test_an_unstable_frame_is_redone_with_more_substeps_until_it_is_stable():
     _, fine = _explicit_hanging_sheet(40)
     assert coarse.report["retries"] == 2
     assert coarse.report["frame_substeps_max"] == 40
+    # Every frame's kept run was at 40, and the report (the CLI, the study's note) says so.
+    assert coarse.report["frames_at_finer_steps"] == 20
+    assert finer_steps_note(coarse.report) == " (20 frames at finer steps, up to 40 substeps)"
+    assert finer_steps_note(fine.report) == ""
     np.testing.assert_allclose(coarse.vertices[sheet.name], fine.vertices[sheet.name],
                                atol=1e-6)
     # The swing's kinetic energy never exceeds the potential energy it gave up (0.3 m at most).
@@ -775,6 +785,7 @@ def test_a_retried_level_is_held_then_stepped_down_and_a_failed_step_down_double
     assert runs == expected
     assert result.report["retries"] == 3
     assert result.report["frame_substeps_max"] == 80
+    assert result.report["frames_at_finer_steps"] == 1 + 10 + 1 + 20 + 3
 
 
 def test_a_frame_unstable_after_the_last_retry_rejects_the_sequence_with_its_reason():

@@ -326,6 +326,15 @@ def elastic_energy(model: ClothModel, x: np.ndarray, springs: np.ndarray | slice
                                 * np.sum(curvature * curvature, axis=1)))
 
 
+def finer_steps_note(report: dict) -> str:
+    """' (N frames at finer steps, up to M substeps)' for a run report where frames ran at more
+    substeps than the run's own, else '' (reports of runs before 2026-12-06 lack the count)."""
+    n = int(report.get("frames_at_finer_steps", 0))
+    if n == 0:
+        return ""
+    return f" ({n} frames at finer steps, up to {report['frame_substeps_max']} substeps)"
+
+
 def kinetic_energy_bound(ke0: float, mass: float, dt: float, gravity: float,
                          drive_speed: float) -> float:
     """The most kinetic energy a cloth of total `mass` with kinetic energy `ke0` can have `dt`
@@ -916,6 +925,10 @@ class _Simulation:
             "simulated_seconds_per_wall_second": (len(self.frame_substeps) / self.fps)
             / (setup + frames),
             "frame_substeps_max": max(self.frame_substeps, default=self.substeps),
+            # Frames whose kept run had more substeps than the run's own: retried, held after
+            # a retry (RETRY_HOLD) or refined for strain. A run with many is not a run at its
+            # stated steps (the accuracy study notes it).
+            "frames_at_finer_steps": sum(s > self.substeps for s in self.frame_substeps),
             # Elements the model floored (a user's template with degenerate triangles).
             "degenerate_elements": {k: v for k, v in self.model.degenerate.items() if v},
             # Each fabric's values as simulated: a shard names its fabrics, and a user's fabric

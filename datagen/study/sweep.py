@@ -436,7 +436,8 @@ def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_ble
                 continue
             rows.append(_row(scene_name, fabric, resolution, solver, sub, it,
                              scene.n_vertices, run.positions, ref, horizon,
-                             run.seconds_per_simulated_second, run.qa, predictable=pred))
+                             run.seconds_per_simulated_second, run.qa, run.note,
+                             predictable=pred))
             log(f"  {solver} {sub}x{it}: {asdict(rows[-1])}")
     for other in plan.resolutions.get(scene_name, []):
         alt = build_scene(scene_name, fabric, other)
@@ -453,7 +454,8 @@ def run_part(scene_name: str, resolution: str, fabric: str, plan: Plan, have_ble
             rows.append(_row(scene_name, fabric, other, "xpbd", sub, it, alt.n_vertices,
                              _at_probes(run.positions, mapping), ref, horizon,
                              run.seconds_per_simulated_second, run.qa,
-                             "measured at the reference mesh's vertices", pred))
+                             "; ".join(filter(None, ["measured at the reference mesh's vertices",
+                                                     run.note])), pred))
             log(f"  xpbd {other} {sub}x{it}: {asdict(rows[-1])}")
     gap = halving = None
     cushion: dict = {}
