@@ -415,6 +415,7 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, fp
     from datagen.sim.simulate import finer_steps_note
 
     rep = sim.report
+    finer = finer_steps_note(rep)
     names = ", ".join(f"{g.name} ({g.meta.get('variant', g.category)}, {g.fabric}, "
                       f"{len(g.vertices)} vertices)" for g in record.garments)
     click.echo(
@@ -423,7 +424,7 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, fp
         f"{', '.join(rep['effects'])}\n"
         f"  simulated {rep['simulated_seconds_per_wall_second']:.2f} s per wall-clock second "
         f"({rep['wall_time_s']:.1f} s), retries {rep['retries']}"
-        f"{finer_steps_note(rep)}; QA: max strain "
+        f"{f' ({finer})' if finer else ''}; QA: max strain "
         f"{float(sim.qa['strain_p999'].max()):.3f} (99.9th pct), at most "
         f"{100 * float(sim.qa['over_strain_share'].max()):.3f} % of springs over their "
         f"fabric's max_strain, deepest penetration share "

@@ -744,7 +744,7 @@ def test_an_unstable_frame_is_redone_with_more_substeps_until_it_is_stable():
     assert coarse.report["frame_substeps_max"] == 40
     # Every frame's kept run was at 40, and the report (the CLI, the study's note) says so.
     assert coarse.report["frames_at_finer_steps"] == 20
-    assert finer_steps_note(coarse.report) == " (20 frames at finer steps, up to 40 substeps)"
+    assert finer_steps_note(coarse.report) == "20 frames at finer steps, up to 40 substeps"
     assert finer_steps_note(fine.report) == ""
     np.testing.assert_allclose(coarse.vertices[sheet.name], fine.vertices[sheet.name],
                                atol=1e-6)

@@ -327,12 +327,12 @@ def elastic_energy(model: ClothModel, x: np.ndarray, springs: np.ndarray | slice
 
 
 def finer_steps_note(report: dict) -> str:
-    """' (N frames at finer steps, up to M substeps)' for a run report where frames ran at more
+    """'N frames at finer steps, up to M substeps' for a run report where frames ran at more
     substeps than the run's own, else '' (reports of runs before 2026-12-06 lack the count)."""
     n = int(report.get("frames_at_finer_steps", 0))
     if n == 0:
         return ""
-    return f" ({n} frames at finer steps, up to {report['frame_substeps_max']} substeps)"
+    return f"{n} frames at finer steps, up to {report['frame_substeps_max']} substeps"
 
 
 def kinetic_energy_bound(ke0: float, mass: float, dt: float, gravity: float,

@@ -31,16 +31,9 @@ class Run:
     simulated: float  # seconds of simulated time
     qa: dict
     setup: float = 0.0
-    # The report's frame count beyond the stated steps and what they reached (the stability
-    # guard's retries and holds; the study refines no frame for strain): `note`.
-    frames_at_finer_steps: int = 0
-    frame_substeps_max: int = 0
-
-    @property
-    def note(self) -> str:
-        """What a study row says of a run whose frames did not all run at its stated steps."""
-        return finer_steps_note({"frames_at_finer_steps": self.frames_at_finer_steps,
-                                 "frame_substeps_max": self.frame_substeps_max}).strip(" ()")
+    # What a study row says of a run whose frames did not all run at its stated steps (the
+    # stability guard's retries and holds; the study refines no frame for strain), else ''.
+    note: str = ""
 
     @property
     def seconds_per_simulated_second(self) -> float:
@@ -106,6 +99,4 @@ def run_ours(scene: StudyScene, solver: str, substeps: int, iterations: int,
     return Run(label or f"{solver} {substeps}x{iterations}", positions.astype(np.float64),
                result.report["frames_time_s"], simulated,
                {k: np.asarray(v) for k, v in result.qa.items()},
-               setup=result.report["setup_time_s"],
-               frames_at_finer_steps=int(result.report.get("frames_at_finer_steps", 0)),
-               frame_substeps_max=int(result.report.get("frame_substeps_max", substeps)))
+               setup=result.report["setup_time_s"], note=finer_steps_note(result.report))
