@@ -2505,32 +2505,35 @@ def grid_signed_distance(x: V3, hint: I1, last: I1, b: V3, n: V3, faces: I3, mas
         cell = ti.cast(ti.floor((p_grid - origin) * inv_cell), ti.i32)
         lo = ti.max(ti.cast(ti.floor((p_grid - reach - origin) * inv_cell), ti.i32), cell - 1)
         hi = ti.min(ti.cast(ti.floor((p_grid + reach - origin) * inv_cell), ti.i32), cell + 1)
-        span = hi - lo + 1
-        for k in range(span[0] * span[1] * span[2]):
-            c = lo + ti.math.ivec3(k // (span[1] * span[2]), (k // span[2]) % span[1],
-                                   k % span[2])
-            cid = grid_cell(c, dims)
-            if cid >= 0:
-                for q in range(starts[cid], starts[cid + 1]):
-                    t = items[q]
-                    tb = tbox[t]
-                    swept = ti.max(vec3(tb[0], tb[1], tb[2]) - p_grid, 0.0,
-                                   p_grid - vec3(tb[3], tb[4], tb[5]))
-                    if (swept.norm_sqr() <= bound
-                            and scanned_first(c, lo, vec3(tb[0], tb[1], tb[2]), origin,
-                                              inv_cell)):
-                        f = faces[t]
-                        ta = b[f[0]]
-                        tb_ = b[f[1]]
-                        tc = b[f[2]]
-                        box = ti.max(ti.min(ta, tb_, tc) - p, 0.0, p - ti.max(ta, tb_, tc))
-                        if box.norm_sqr() <= bound:
-                            r = closest_on_triangle(p, ta, tb_, tc)
-                            if r[3] < best:
-                                best = r[3]
-                                best_t = t
-                                reach = ti.sqrt(best) + 1e-6
-                                bound = reach * reach
+        # Nested loops, in the order a flat index would give: one index divided by the
+        # runtime spans cost three integer divisions a cell, 40 % of a far point's scan.
+        for cx in range(lo[0], hi[0] + 1):
+            for cy in range(lo[1], hi[1] + 1):
+                for cz in range(lo[2], hi[2] + 1):
+                    c = ti.math.ivec3(cx, cy, cz)
+                    cid = grid_cell(c, dims)
+                    if cid >= 0:
+                        for q in range(starts[cid], starts[cid + 1]):
+                            t = items[q]
+                            tb = tbox[t]
+                            swept = ti.max(vec3(tb[0], tb[1], tb[2]) - p_grid, 0.0,
+                                           p_grid - vec3(tb[3], tb[4], tb[5]))
+                            if (swept.norm_sqr() <= bound
+                                    and scanned_first(c, lo, vec3(tb[0], tb[1], tb[2]), origin,
+                                                      inv_cell)):
+                                f = faces[t]
+                                ta = b[f[0]]
+                                tb_ = b[f[1]]
+                                tc = b[f[2]]
+                                box = ti.max(ti.min(ta, tb_, tc) - p, 0.0,
+                                             p - ti.max(ta, tb_, tc))
+                                if box.norm_sqr() <= bound:
+                                    r = closest_on_triangle(p, ta, tb_, tc)
+                                    if r[3] < best:
+                                        best = r[3]
+                                        best_t = t
+                                        reach = ti.sqrt(best) + 1e-6
+                                        bound = reach * reach
         last[i] = best_t
         d = far
         if best_t < 0:
