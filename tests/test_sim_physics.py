@@ -788,6 +788,41 @@ def test_a_retried_level_is_held_then_stepped_down_and_a_failed_step_down_double
     assert result.report["frames_at_finer_steps"] == 1 + 10 + 1 + 20 + 3
 
 
+@pytest.mark.parametrize("trips, phrase", [
+    # Frame 3 holds 80 for the frames after it; frame 6 trips at 80 and 160.
+    ({3: (40,), 6: (80, 160)},
+     "unstable at frame 6: made to trip, still after 1 retry from 80 substeps, held since an "
+     "earlier frame's retry, with up to 160 substeps"),
+    # Frame 3 needs the top level, 160; frame 5 starts there and trips.
+    ({3: (40, 80), 5: (160,)},
+     "unstable at frame 5: made to trip, at 160 substeps, held since an earlier frame's "
+     "retry"),
+])
+def test_a_rejection_counts_the_frames_own_retries_when_it_started_held(
+        monkeypatch, trips, phrase):
+    """A frame that starts at the steps an earlier frame's retry held, and trips up to the top
+    level, is rejected saying what it ran: its own retries from the held steps (counting the
+    doublings from the base would claim the earlier frame's retries as its own)."""
+    from datagen.errors import RejectedSequence
+    from datagen.sim import simulate as sim_module
+
+    original = sim_module._Simulation._frame
+
+    def frame(self, solver, f0, f1, profile, search=True):
+        reason = original(self, solver, f0, f1, profile, search)
+        if solver.settings.substeps in trips.get(f1, ()):
+            return "made to trip"
+        return reason
+
+    monkeypatch.setattr(sim_module._Simulation, "_frame", frame)
+    sheet = grid_sheet(8, 0.3, 1.0)
+    sheet.pinned = np.array([0, 8])
+    with pytest.raises(RejectedSequence) as info:
+        simulate([sheet], None, SimOptions(solver="explicit", substeps=40, frames=10,
+                                           settle_seconds=0.0, strain_refinements=0))
+    assert info.value.reason == phrase
+
+
 def test_a_frame_unstable_after_the_last_retry_rejects_the_sequence_with_its_reason():
     from datagen.errors import RejectedSequence
 

@@ -788,8 +788,8 @@ class _Simulation:
                 frame = max(f1 - lead_in, 0)
                 raise RejectedSequence(
                     "simulate",
-                    f"unstable at frame {frame}: {reason}, still after {MAX_RETRIES} retries "
-                    f"with up to {self.substeps * 2**MAX_RETRIES} substeps"
+                    f"unstable at frame {frame}: {reason}, "
+                    + self._retries_phrase(start, level)
                     + slid_necklines_note(self.garments, self.model.garment_ranges,
                                           x0, self.body, f0),
                     (max(f0 - lead_in, 0), frame),
@@ -807,6 +807,20 @@ class _Simulation:
             solver.set_tracking(current.get_tracking())
         self.frame_substeps.append(self.substeps * 2**level)
         self._hold_retry_level(start, held)
+
+    def _retries_phrase(self, start: int, level: int) -> str:
+        """What a rejection says of the frame's runs: its own retries, and the level it started
+        at when an earlier frame's retry was still held (the doublings alone would count the
+        earlier frame's retries as this one's)."""
+        top = f"{self.substeps * 2**level} substeps"
+        if start == 0:
+            return f"still after {level} retries with up to {top}"
+        held = f"{self.substeps * 2**start} substeps, held since an earlier frame's retry"
+        tried = level - start
+        if tried == 0:
+            return f"at {held}"
+        return f"still after {tried} {'retry' if tried == 1 else 'retries'} from {held}, " \
+            f"with up to {top}"
 
     def _refined(self, level: int, x0: np.ndarray, v0: np.ndarray, tracking0):
         """The solver at `level` doublings of the substeps (made on first use), set to the
