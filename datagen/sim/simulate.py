@@ -889,7 +889,8 @@ class _Simulation:
                 b = self.body.vertices[body_frame]
                 self.collider.set_frames(b, b)
             # The solver's tracked triangles only bound the search (it finds the nearest).
-            sd = self.collider.signed_distance(x, hint=self.solver.tri)
+            # Read in place: the solver holds this frame's end (_advance copied a retry's in).
+            sd = self.collider.signed_distance(self.solver.x, hint=self.solver.tri)
         strain = self._strain(x)
         flags = None if sd is None else (sd < 0.0, sd < -self.model.thickness)
         qa_rows.append([_qa(self.model, p, v, flags, strain) for p in self.parts])
