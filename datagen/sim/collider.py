@@ -426,13 +426,14 @@ class BodyCollider:
         n = x.shape[0]
         if getattr(self, "_sd_n", None) != n:
             self._sd_n = n
-            self._sd_x = ti.ndarray(VEC3, n)
+            self._sd_x = None  # made when host points come (the simulator's never do)
             self._sd_last = ti.ndarray(ti.i32, n)
             self._sd_last.fill(-1)
             self._sd_out = ti.ndarray(REAL, n)
-        if isinstance(x, ti.Ndarray):
-            points = x
-        else:
+        points = x
+        if not isinstance(x, ti.Ndarray):
+            if self._sd_x is None:
+                self._sd_x = ti.ndarray(VEC3, n)
             points = self._sd_x
             points.from_numpy(np.asarray(x, dtype=NP_REAL))
         grid = self._end_grid()

@@ -326,13 +326,18 @@ def elastic_energy(model: ClothModel, x: np.ndarray, springs: np.ndarray | slice
                                 * np.sum(curvature * curvature, axis=1)))
 
 
+# The words of finer_steps_note that mark a run that did not keep its stated steps (the
+# accuracy study's report finds such rows by them in their saved notes).
+FINER_STEPS = "at finer steps"
+
+
 def finer_steps_note(report: dict) -> str:
     """'N frames at finer steps, up to M substeps' for a run report where frames ran at more
     substeps than the run's own, else '' (reports of runs before 2026-12-06 lack the count)."""
     n = int(report.get("frames_at_finer_steps", 0))
     if n == 0:
         return ""
-    return f"{n} frames at finer steps, up to {report['frame_substeps_max']} substeps"
+    return f"{n} frames {FINER_STEPS}, up to {report['frame_substeps_max']} substeps"
 
 
 def kinetic_energy_bound(ke0: float, mass: float, dt: float, gravity: float,
@@ -819,8 +824,8 @@ class _Simulation:
         tried = level - start
         if tried == 0:
             return f"at {held}"
-        return f"still after {tried} {'retry' if tried == 1 else 'retries'} from {held}, " \
-            f"with up to {top}"
+        return (f"still after {tried} {'retry' if tried == 1 else 'retries'} from {held}, "
+                f"with up to {top}")
 
     def _refined(self, level: int, x0: np.ndarray, v0: np.ndarray, tracking0):
         """The solver at `level` doublings of the substeps (made on first use), set to the

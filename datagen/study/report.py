@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from datagen.sim.simulate import FINER_STEPS
 from datagen.study.run import PEER_EFFECTS
 from datagen.study.scenes import START_SUBSTEPS
 from datagen.study.sweep import (
@@ -128,7 +129,7 @@ def _at_stated_steps(r: Row) -> bool:
     (and the frames they hold) run finer, and the row's note says how many frames did: its
     time and error are not its steps' (an explicit 200x1 that retried every frame was the
     400x1 run plus the failed tries)."""
-    return "at finer steps" not in r.note
+    return FINER_STEPS not in r.note
 
 
 def _label(r: Row) -> str:
