@@ -37,14 +37,6 @@ def quat_to_axis_angle(q: np.ndarray) -> np.ndarray:
     return Rotation.from_quat(q.reshape(-1, 4)).as_rotvec().reshape(q.shape[:-1] + (3,))
 
 
-def euler_to_matrix(order: str, angles_deg: np.ndarray) -> np.ndarray:
-    """Intrinsic Euler angles in degrees, `order` like 'ZXY' (BVH channel order) -> matrices."""
-    angles_deg = np.asarray(angles_deg, dtype=np.float64)
-    flat = angles_deg.reshape(-1, 3)
-    mats = Rotation.from_euler(order.upper(), flat, degrees=True).as_matrix()
-    return mats.reshape(angles_deg.shape[:-1] + (3, 3))
-
-
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Smallest rotation matrix taking direction a onto direction b (both 3-vectors)."""
     a = np.asarray(a, dtype=np.float64)
@@ -95,24 +87,6 @@ def slerp_axis_angle(poses: np.ndarray, t_src: np.ndarray, t_dst: np.ndarray) ->
     q = w0 * q0 + w1 * q1
     q /= np.linalg.norm(q, axis=-1, keepdims=True)
     return quat_to_axis_angle(q)
-
-
-def unwrap_axis_angle(poses: np.ndarray) -> np.ndarray:
-    """Make consecutive axis-angle vectors continuous (no 2*pi jumps) along axis 0.
-
-    Each rotation has two axis-angle forms near angle pi (r and r - 2*pi*r/|r|); pick the one
-    closest to the previous frame so that finite differences measure true angular velocity.
-    """
-    out = np.array(poses, dtype=np.float64, copy=True)
-    for f in range(1, out.shape[0]):
-        prev = out[f - 1]
-        cur = out[f]
-        angle = np.linalg.norm(cur, axis=-1, keepdims=True)
-        axis = np.where(angle > 1e-12, cur / np.where(angle > 1e-12, angle, 1.0), 0.0)
-        alt = cur - 2.0 * np.pi * axis
-        use_alt = np.linalg.norm(alt - prev, axis=-1) < np.linalg.norm(cur - prev, axis=-1)
-        out[f] = np.where(use_alt[..., None], alt, cur)
-    return out
 
 
 def angular_velocity(poses: np.ndarray, fps: float) -> np.ndarray:

@@ -125,14 +125,6 @@ REFERENCE_REST_JOINTS = np.array(
 REFERENCE_PELVIS_HEIGHT = 0.9524
 
 
-def bone_children() -> list[list[int]]:
-    children: list[list[int]] = [[] for _ in range(NUM_JOINTS)]
-    for j, p in enumerate(PARENTS):
-        if p >= 0:
-            children[p].append(j)
-    return children
-
-
 def forward_kinematics(
     poses: np.ndarray, trans: np.ndarray, rest_joints: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -15,6 +15,7 @@ from datagen.skeleton import (
     REFERENCE_PELVIS_HEIGHT,
     REFERENCE_REST_JOINTS,
     SMPL_TO_WORLD,
+    canonical_root_to_smpl,
     forward_kinematics,
     smpl_root_to_canonical,
 )
@@ -86,6 +87,20 @@ def test_root_conversion_of_identity_and_upright_roots(tmp_path: Path):
     head = joints[:, 15] - joints[:, 0]
     np.testing.assert_allclose(head[0] / np.linalg.norm(head[0]), [0, 1.0, 0.05], atol=0.01)
     np.testing.assert_allclose(head[1] / np.linalg.norm(head[1]), [0, -0.05, 1.0], atol=0.01)
+
+
+def test_canonical_roots_convert_back_to_smpl():
+    """Users who drive an SMPL body with our poses convert the root back: the canonical
+    identity (standing, facing -y) is AMASS's upright +90 degrees about x, every root returns
+    to the SMPL one it came from, and the other joints are untouched."""
+    back = canonical_root_to_smpl(np.zeros((1, 72)))
+    np.testing.assert_allclose(back[0, :3], UPRIGHT_SMPL_ROOT, atol=1e-12)
+    np.testing.assert_allclose(back[0, 3:], 0.0)
+    poses = sample(n=8)["poses"]
+    poses[0, :3] = [0.0, 0.0, 3.0]  # near pi: the axis-angle form is not unique there
+    again = canonical_root_to_smpl(smpl_root_to_canonical(poses))
+    assert same_rotations(again[:, :3], poses[:, :3])
+    np.testing.assert_array_equal(again[:, 3:], poses[:, 3:])
 
 
 def test_upright_t_pose_stands_on_the_ground(tmp_path: Path):
