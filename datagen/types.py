@@ -192,12 +192,6 @@ class Garment:
 
 
 @dataclass
-class Outfit:
-    garments: list[Garment]
-    sewn: str | None = None  # "jumpsuit" | "dress" when two templates were stitched
-
-
-@dataclass
 class SimResult:
     """The simulation stage's result: garment vertices at the output frame rate (lead-in frames
     excluded), per-frame QA series and a report of what ran and what it cost."""

@@ -45,10 +45,6 @@ class SequenceRecord:
     # The machine and package versions of the worker that made it (datagen.environment).
     environment: dict[str, object] = field(default_factory=dict)
 
-    @property
-    def wall_time(self) -> float:
-        return float(sum(self.timings.values()))
-
 
 def sim_options_from_spec(spec: SceneSpec, fabrics: dict | None = None,
                           guards: bool = False):

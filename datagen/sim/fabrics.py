@@ -25,7 +25,7 @@ to mass shape the motion, so this scale does not change Blender's dynamics at h0
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from datagen.config import check_range, from_mapping, load_yaml
@@ -138,11 +138,6 @@ FABRICS: dict[str, Fabric] = {
         "rubber", BLENDER_PRESETS["rubber"], friction=1.0, thickness=0.005, max_strain=0.40
     ),
 }
-
-
-@dataclass(frozen=True)
-class FabricFile:
-    fabrics: dict[str, Fabric] = field(default_factory=dict)
 
 
 def load_fabrics(path: str | Path) -> dict[str, Fabric]:
