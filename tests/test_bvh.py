@@ -541,6 +541,9 @@ def _edit_frame(text: str, frame: int, edit) -> str:
 MUTATIONS = {
     # id: (edit of the file text, field the message must name)
     "no-motion": (lambda t: t.replace("MOTION\n", ""), "MOTION"),
+    # An empty file or another format is named as such, not as a BVH missing its MOTION.
+    "empty": (lambda t: "", "HIERARCHY"),
+    "not-bvh": (lambda t: '{"poses": [[0, 0, 0]]}\n', "HIERARCHY"),
     "unbalanced": (lambda t: t.replace("End Site\n", "End Site\n{\n", 1), "HIERARCHY"),
     "channel-count": (lambda t: t.replace("CHANNELS 3 Z", "CHANNELS 4 Z", 1), "HIERARCHY"),
     "frame-time": (lambda t: t.replace("Frame Time: 0.0333333", "Frame Time: 0"), "Frame Time"),

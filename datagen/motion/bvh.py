@@ -300,15 +300,21 @@ def _float(tok: str, path: Path, field_: str, expected: str) -> float:
         raise InputError(path, field_, expected, tok) from None
 
 
-def _parse_hierarchy(text: str, path: Path) -> BvhClip:
-    tokens = text.split()
-    if not tokens or tokens[0].upper() != "HIERARCHY":
+def _check_start(text: str, path: Path) -> None:
+    """An empty file or another format fails here, before its missing MOTION is blamed."""
+    first = text.split(maxsplit=1)[:1]
+    if not first or first[0].upper() != "HIERARCHY":
         raise InputError(
             path,
             "HIERARCHY",
             "a BVH file starting with 'HIERARCHY'",
-            tokens[0] if tokens else "an empty file",
+            first[0][:40] if first else "an empty file",
         )
+
+
+def _parse_hierarchy(text: str, path: Path) -> BvhClip:
+    """The skeleton of `text`, which _check_start found to begin with HIERARCHY."""
+    tokens = text.split()
     names: list[str] = []
     parents: list[int] = []
     offsets: list[np.ndarray | None] = []
@@ -463,6 +469,7 @@ def parse_bvh(path: str | Path) -> BvhClip:
         text = path.read_text(encoding="utf-8-sig", errors="replace")  # some exporters write a BOM
     except OSError as e:
         raise InputError(path, None, "a readable BVH file", e.strerror or str(e)) from None
+    _check_start(text, path)
     m = _MOTION_RE.search(text)
     if m is None:
         raise InputError(path, "MOTION", "a MOTION section after the HIERARCHY", "missing")
