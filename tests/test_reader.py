@@ -91,6 +91,7 @@ def test_reader_round_trip(dataset):
             assert set(qa) == set(sf.QA_SERIES)
             for name, series in record.sim.qa.items():
                 np.testing.assert_array_equal(qa[name], series)
+            assert reader.sim_report(sid) == record.sim.report
             assert reader.info(sid)["frames"] == synth.frames
         rejected = reader.rejected()
         assert list(rejected) == dataset.rejected

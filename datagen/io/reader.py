@@ -237,6 +237,8 @@ class DatasetReader:
         return {k: v[()] for k, v in seq["qa"].items()} if "qa" in seq else {}
 
     def sim_report(self, seq_id: str) -> dict:
+        """The simulator's run report as written (solver, steps, effects and their cost,
+        retries, escalation, fabrics; docs/shard-format.md); empty when not simulated."""
         seq = self.group(seq_id)
         return json.loads(_text(seq["sim"].attrs["report"])) if "sim" in seq else {}
 
