@@ -126,7 +126,8 @@ def test_frame_rate_key_alias(tmp_path: Path):
     assert load_amass(write_npz(tmp_path, **data)).fps == 60.0
 
 
-def _error(path: Path, field: str | None) -> None:
+def assert_input_error(path: Path, field: str | None) -> None:
+    """Loading `path` raises InputError naming the file and, where given, the field."""
     with pytest.raises(InputError) as exc:
         load_amass(path)
     message = str(exc.value)
@@ -139,7 +140,7 @@ def test_missing_poses(tmp_path: Path):
     data = sample()
     del data["poses"]
     path = write_npz(tmp_path, "noposes.npz", **data)
-    _error(path, "poses")
+    assert_input_error(path, "poses")
     with pytest.raises(InputError, match="missing"):
         load_amass(path)
 
@@ -147,41 +148,41 @@ def test_missing_poses(tmp_path: Path):
 def test_mismatched_lengths(tmp_path: Path):
     data = sample()
     data["trans"] = data["trans"][:-1]
-    _error(write_npz(tmp_path, "short.npz", **data), "trans")
+    assert_input_error(write_npz(tmp_path, "short.npz", **data), "trans")
 
 
 @pytest.mark.parametrize("rate", [0.0, -30.0, np.nan])
 def test_bad_frame_rate(tmp_path: Path, rate: float):
     data = sample()
     data["mocap_framerate"] = np.array(rate)
-    _error(write_npz(tmp_path, "rate.npz", **data), "mocap_framerate")
+    assert_input_error(write_npz(tmp_path, "rate.npz", **data), "mocap_framerate")
 
 
 def test_missing_frame_rate(tmp_path: Path):
     data = sample()
     del data["mocap_framerate"]
-    _error(write_npz(tmp_path, "norate.npz", **data), "mocap_framerate")
+    assert_input_error(write_npz(tmp_path, "norate.npz", **data), "mocap_framerate")
 
 
 def test_bad_shapes_and_values(tmp_path: Path):
     data = sample()
     narrow = dict(data, poses=data["poses"][:, :60])
-    _error(write_npz(tmp_path, "narrow.npz", **narrow), "poses")
+    assert_input_error(write_npz(tmp_path, "narrow.npz", **narrow), "poses")
     flat = dict(data, poses=data["poses"][0])
-    _error(write_npz(tmp_path, "flat.npz", **flat), "poses")
+    assert_input_error(write_npz(tmp_path, "flat.npz", **flat), "poses")
     nan = dict(data, trans=data["trans"].copy())
     nan["trans"][3, 1] = np.inf
-    _error(write_npz(tmp_path, "inf.npz", **nan), "trans")
+    assert_input_error(write_npz(tmp_path, "inf.npz", **nan), "trans")
     text = dict(data, poses=np.array([["a"] * 72] * 6))
-    _error(write_npz(tmp_path, "text.npz", **text), "poses")
+    assert_input_error(write_npz(tmp_path, "text.npz", **text), "poses")
 
 
 def test_not_an_npz(tmp_path: Path):
     text = tmp_path / "notes.npz"
     text.write_text("poses, trans\n1, 2\n")
-    _error(text, None)
+    assert_input_error(text, None)
     single = tmp_path / "array.npz"
     with single.open("wb") as f:
         np.save(f, np.zeros((3, 72)))
-    _error(single, None)
-    _error(tmp_path / "absent.npz", None)
+    assert_input_error(single, None)
+    assert_input_error(tmp_path / "absent.npz", None)
