@@ -117,6 +117,12 @@ def projection_lines(sample: dict) -> list[str]:
     lo, hi = (mean - half) * n_total / 3600.0, (mean + half) * n_total / 3600.0
     escalated = [r for r in runs if r["escalated"]]
     rejected = [r for r in runs if r["status"] != "ok"]
+    # The recipe's count is of sequences run, and the QA gate drops some: what a user plans
+    # with is how many get written, so the written share comes with its binomial interval
+    # (Wilson's, which stays inside 0-1 for small samples and shares near 1).
+    written = n - len(rejected)
+    share = written / n
+    share_ci = stats.binomtest(written, n).proportion_ci(confidence_level=0.95, method="wilson")
     esc_share = sum(r["seconds"] for r in escalated) / sum(times)
     by_garments = Counter(r["garments"] for r in runs)
     frames = sorted({r["frames"] for r in runs})
@@ -141,9 +147,18 @@ def projection_lines(sample: dict) -> list[str]:
         "sequences |",
         f"| projected cost | **{hours:,.0f} core-hours** ({hours / 24:,.0f} core-days; "
         f"95 % interval {lo:,.0f}-{hi:,.0f}) |",
+        f"| written (not rejected) | {written} of {n}, {100 * share:.0f} % (95 % interval "
+        f"{100 * share_ci.low:.0f}-{100 * share_ci.high:.0f} %, Wilson's): the recipe's "
+        f"{n_total:,} would write about **{share * n_total:,.0f}** "
+        f"({share_ci.low * n_total:,.0f}-{share_ci.high * n_total:,.0f}) |",
+        f"| to write {n_total:,} at the sample's share | "
+        + (f"about {n_total / share:,.0f} sequences run, {hours / share:,.0f} core-hours |"
+           if written else "none written in the sample |"),
         "",
         "The interval is the mean's (the sample's spread over the square root of its size, "
-        "Student's t): it narrows with `--cloth3d-samples N`. Outfits range from one garment "
+        "Student's t): it narrows with `--cloth3d-samples N`, as does the written share's "
+        "(the QA gate's rejections: docs/simulator.md, \"Known losses\"). Outfits range "
+        "from one garment "
         "to a layered pair, and a sequence's cost follows its garment vertex count, its motion "
         "and whether it had to be simulated again.",
     ]

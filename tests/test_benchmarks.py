@@ -425,7 +425,8 @@ def test_the_body_frame_study_splits_what_it_times_and_leaves_the_simulator_as_i
 
 def test_the_dataset_projection_gives_the_mean_with_its_t_interval_and_the_escalations():
     """bench_dataset projects the CLOTH3D recipe's cost from a sample of its sequences: the mean
-    core-seconds times the sequence count, with the mean's 95 % interval (Student's t). Three
+    core-seconds times the sequence count, with the mean's 95 % interval (Student's t), and how
+    many the QA gate would let through, with the written share's interval (Wilson's). Three
     runs of 10, 20 and 30 s: mean 20, standard deviation 10, t(0.975, 2) = 4.303, so the half
     width is 4.303 * 10 / sqrt(3) = 24.8 s; over 3600 sequences, 20 core-hours (-5 to 45). The
     escalated one's 30 s are half the sample's 60."""
@@ -453,6 +454,15 @@ def test_the_dataset_projection_gives_the_mean_with_its_t_interval_and_the_escal
         run(0, 10.0), run(1, 20.0), rejected]}))
     assert "3: 2 finished, 1 rejected; " in text
     assert "(5,000-10,000 garment vertices)" in text
+    # Written 2 of 3: Wilson's 95 % interval, by hand with z = 1.96, is centred on
+    # (2/3 + z^2/6) / (1 + z^2/3) = 0.57308 with half width
+    # z / (1 + z^2/3) * sqrt((2/9)/3 + z^2/36) = 0.36543: 20.77-93.85 %, of 3600 748-3,379.
+    assert ("| 2 of 3, 67 % (95 % interval 21-94 %, Wilson's): the recipe's 3,600 would write "
+            "about **2,400** (748-3,379) |") in text
+    # Writing 3600 at that share runs 3600 / (2/3) = 5400; the mean of 10, 20 and 20 s over
+    # 3600 sequences is 16.7 core-hours, over 2/3 written 25.
+    assert "| to write 3,600 at the sample's share | about 5,400 sequences run, 25 core-hours |" \
+        in text
 
 
 def test_the_choice_at_blenders_error_skips_costlier_settings_and_takes_each_ones_least_time():
