@@ -98,6 +98,12 @@ def test_reader_round_trip(dataset):
         rej = rejected[dataset.rejected[0]]
         assert rej["stage"] == "simulate" and rej["frames"] == (2, 4)
         assert "unstable" in rej["reason"]
+        # Asking for a rejected sequence's data names its shard and says why it has none.
+        with pytest.raises(InputError) as info:
+            reader.body(dataset.rejected[0])
+        assert info.value.source == rej["shard"] and info.value.field == "sequence"
+        assert (f"{dataset.rejected[0]} was rejected (simulate: unstable at frame 4: velocity "
+                "guard)") in str(info.value)
         handles = [r.file for r in reader._open.values()]
         assert handles and all(h.id.valid for h in handles)
     assert not any(h.id.valid for h in handles)  # closed by the with block

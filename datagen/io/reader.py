@@ -151,6 +151,15 @@ class DatasetReader:
         except KeyError:
             known = ", ".join(self.sequence_ids()[:5])
             more = ", ..." if len(self._where) > 5 else ""
+            if seq_id in self._rejected:
+                # A rejected sequence is in a shard, without data: say so and why, rather than
+                # let the id look mistyped.
+                with ShardReader(self._rejected[seq_id]) as reader:
+                    g = reader.file["rejected"][seq_id]
+                    why = f"{_text(g.attrs['stage'])}: {_text(g.attrs['reason'])}"
+                raise InputError(self._rejected[seq_id], "sequence",
+                                 f"a written sequence (one of {known}{more}); {seq_id} was "
+                                 f"rejected ({why})", seq_id) from None
             raise InputError(self.path, "sequence", f"one of {known}{more}", seq_id) from None
 
     def reader(self, seq_id: str) -> ShardReader:
