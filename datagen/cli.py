@@ -11,7 +11,7 @@ from pathlib import Path
 import click
 
 from datagen.cli_paths import preview_path, shard_path
-from datagen.errors import DatagenError, RejectedSequence, user_errors
+from datagen.errors import DatagenError, InputError, RejectedSequence, user_errors
 
 
 def body_rejection_hint(pipeline: bool) -> str:
@@ -485,13 +485,20 @@ def dataset(pipeline, out, n, workers, scheduler, shard_size, batch, progress) -
 
 
 @main.command()
-@click.argument("path", type=click.Path(dir_okay=False))
+@click.argument("path", type=click.Path())
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of text.")
 @user_errors
 def inspect(path, as_json) -> None:
     """Print what a shard holds: sequences, groups, dataset shapes and attributes."""
     from datagen.io.shard import describe
 
+    if Path(path).is_dir():
+        # A dataset folder holds many shards: point at one, and at what describes the folder.
+        shards = sorted(p.name for p in Path(path).glob("*.h5"))
+        example = f", e.g. {Path(path) / shards[0]}" if shards else ""
+        raise InputError(path, None, f"a shard file{example} (a dataset folder is described "
+                         "by its card, README.md, and checked by `datagen validate`)",
+                         "a folder")
     tree = describe(path)
     if as_json:
         click.echo(json.dumps(tree, indent=1))

@@ -41,6 +41,14 @@ def test_body_walk_and_inspect(tmp_path):
     assert body["attrs"]["shape_names"] == ["age", "muscle", "weight", "height", "proportions"]
     text = run("inspect", out)
     assert "poses (120, 72) float64" in text.stdout
+    # A dataset folder is not a shard: the answer names one of its shards and what describes
+    # the folder, in one line.
+    r = run("inspect", tmp_path)
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert r.returncode != 0 and len(lines) == 1, r.stderr
+    assert lines[0] == (f"error: {tmp_path}: expected a shard file, e.g. {out} (a dataset "
+                        "folder is described by its card, README.md, and checked by "
+                        "`datagen validate`), got 'a folder'")
 
 
 def test_body_from_bvh(tmp_path, cmu_dir):
