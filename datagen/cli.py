@@ -490,12 +490,13 @@ def dataset(pipeline, out, n, workers, scheduler, shard_size, batch, progress) -
 @user_errors
 def inspect(path, as_json) -> None:
     """Print what a shard holds: sequences, groups, dataset shapes and attributes."""
+    from datagen.io.reader import shard_paths
     from datagen.io.shard import describe
 
     if Path(path).is_dir():
         # A dataset folder holds many shards: point at one, and at what describes the folder.
-        shards = sorted(p.name for p in Path(path).glob("*.h5"))
-        example = f", e.g. {Path(path) / shards[0]}" if shards else ""
+        shards = shard_paths(path)
+        example = f", e.g. {shards[0]}" if shards else ""
         raise InputError(path, None, f"a shard file{example} (a dataset folder is described "
                          "by its card, README.md, and checked by `datagen validate`)",
                          "a folder")

@@ -154,19 +154,24 @@ class DatasetReader:
             if seq_id in self._rejected:
                 # A rejected sequence is in a shard, without data: say so and why, rather than
                 # let the id look mistyped.
-                with ShardReader(self._rejected[seq_id]) as reader:
-                    g = reader.file["rejected"][seq_id]
-                    why = f"{_text(g.attrs['stage'])}: {_text(g.attrs['reason'])}"
+                g = self._rejected_group(seq_id)
+                why = f"{_text(g.attrs['stage'])}: {_text(g.attrs['reason'])}"
                 raise InputError(self._rejected[seq_id], "sequence",
                                  f"a written sequence (one of {known}{more}); {seq_id} was "
                                  f"rejected ({why})", seq_id) from None
             raise InputError(self.path, "sequence", f"one of {known}{more}", seq_id) from None
 
-    def reader(self, seq_id: str) -> ShardReader:
-        shard = self.shard_of(seq_id)
+    def _shard_reader(self, shard: Path) -> ShardReader:
         if shard not in self._open:
             self._open[shard] = ShardReader(shard)
         return self._open[shard]
+
+    def reader(self, seq_id: str) -> ShardReader:
+        return self._shard_reader(self.shard_of(seq_id))
+
+    def _rejected_group(self, seq_id: str) -> h5py.Group:
+        """The /rejected group of a sequence the gate rejected."""
+        return self._shard_reader(self._rejected[seq_id]).file["rejected"][seq_id]
 
     def group(self, seq_id: str) -> h5py.Group:
         return self.reader(seq_id).group(seq_id)
@@ -255,9 +260,7 @@ class DatasetReader:
         """id -> stage, reason, frames (first, last; -1 when not tied to frames), shard."""
         out = {}
         for sid, shard in sorted(self._rejected.items()):
-            if shard not in self._open:
-                self._open[shard] = ShardReader(shard)
-            g = self._open[shard].file["rejected"][sid]
+            g = self._rejected_group(sid)
             out[sid] = {
                 "stage": _text(g.attrs["stage"]),
                 "reason": _text(g.attrs["reason"]),
