@@ -12,7 +12,8 @@ along a fibre in one update instead of one spring per sweep.
 
 import taichi as ti
 
-from datagen.sim.kernels import F1, I1, I2, V3, spring_alpha_gamma, sweep_order, vec3
+from datagen.sim.kernel_common import F1, I1, I2, V3, vec3
+from datagen.sim.kernels import spring_alpha_gamma, sweep_order
 from datagen.sim.precision import REAL
 
 

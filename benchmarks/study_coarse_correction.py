@@ -71,6 +71,7 @@ from benchmarks.study_warm_start import (
     run_or_runaway,
     study_scene,
 )
+from datagen.sim import kernel_common as KC
 from datagen.sim import kernels as K
 from datagen.sim.effects import Effects
 from datagen.sim.fabrics import FABRICS
@@ -316,7 +317,7 @@ class CoarseXPBD(SweepsXPBD):
             x = self.x.to_numpy().astype(np.float64)
             self._levels = {name: [ChainLevel(s.springs.to_numpy(), x, n) for n in self.lengths]
                             for name, s in self.sets.items()}
-            self._dirs = {name: ti.ndarray(K.vec3, s.count) for name, s in self.sets.items()}
+            self._dirs = {name: ti.ndarray(KC.vec3, s.count) for name, s in self.sets.items()}
         for level in range(len(self.lengths)):
             for name, s in self.sets.items():
                 c = self._levels[name][level]
@@ -352,7 +353,7 @@ def chain_sweep_ms(scene_name: str, resolution: str, fabric: str, lengths: tuple
     springs, chains = [], []
     for s in solver.sets.values():
         springs.append((s.springs, s.rest, s.limit, s.comp_t, s.comp_c, s.beta, s.lam))
-        dirs = ti.ndarray(K.vec3, s.count)
+        dirs = ti.ndarray(KC.vec3, s.count)
         for n in lengths:
             c = ChainLevel(s.springs.to_numpy(), x, n)
             chains.append((s.springs, s.rest, s.comp_t, s.comp_c, s.beta, s.lam, c.ptr,

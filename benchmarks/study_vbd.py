@@ -44,7 +44,7 @@ from datagen.sim import implicit_kernels as IK
 from datagen.sim.effects import Effects
 from datagen.sim.fabrics import FABRICS
 from datagen.sim.implicit import ImplicitSolver
-from datagen.sim.kernels import F1, I1, I2, I4, V3, V4, vec3
+from datagen.sim.kernel_common import F1, I1, I2, I4, V3, V4, vec3
 from datagen.sim.model import build_cloth_model
 from datagen.sim.precision import REAL
 from datagen.sim.solvers import SolverSettings, _nd, make_solver

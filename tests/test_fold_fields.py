@@ -5,18 +5,19 @@ import taichi as ti
 from scipy.spatial.transform import Rotation
 
 from datagen.sim import fold_fields as FF
-from datagen.sim import kernels as K
+from datagen.sim import kernel_common as KC
+from datagen.sim import search_kernels as SK
 from datagen.sim.precision import NP_REAL, REAL, VEC3
 from datagen.sim.scenes import icosphere
 
 
 @ti.kernel
-def _look_up(points: K.V3, part: REAL, normal: VEC3, s_frame: REAL, fold: K.F1, reach: REAL,
-             out: K.V3):
-    """kernels.fold_near at each point, as the part guard asks it of a tracked vertex. (Taichi
-    reads the annotations: this module has no `from __future__ import annotations`.)"""
+def _look_up(points: KC.V3, part: REAL, normal: VEC3, s_frame: REAL, fold: KC.F1, reach: REAL,
+             out: KC.V3):
+    """search_kernels.fold_near at each point, as the part guard asks it of a tracked vertex.
+    (Taichi reads the annotations: this module has no `from __future__ import annotations`.)"""
     for i in points:
-        out[i] = K.fold_near(points[i], part, normal, s_frame, fold, 0, reach, VEC3(0.0))
+        out[i] = SK.fold_near(points[i], part, normal, s_frame, fold, 0, reach, VEC3(0.0))
 
 
 def _ball_and_plate(n_frames: int = 8):
@@ -179,7 +180,7 @@ def test_a_frames_fields_do_not_depend_on_folds_later_in_the_sequence():
         inner = data_l[at[0]:at[0] + dims_s[0], at[1]:at[1] + dims_s[1], at[2]:at[2] + dims_s[2]]
         np.testing.assert_array_equal(inner, data_s)
 
-    # The guard's lookup (kernels.fold_near) for a vertex on the plate: whether the ball's
+    # The guard's lookup (search_kernels.fold_near) for a vertex on the plate: whether the ball's
     # facing surface is near, and where it is not, how much farther it is. Inside the short
     # grid both answers agree bit for bit; beyond it the long grid reads the distance where
     # the short one bounds it, but neither finds the ball there.

@@ -118,7 +118,7 @@ def test_heavy_walk_keeps_each_trouser_leg_out_of_the_other_thigh(body_model):
     (1.11 % of them, up to 31 mm deep, frame 39) while they tracked the left thigh. The frame's
     full search had measured how far the facing right thigh was at the frame's end only, 4-5
     cm further on, found it out of reach and left them unguarded until the next full search;
-    now it takes the nearer of the frame's start and end (kernels.other_surface)."""
+    now it takes the nearer of the frame's start and end (search_kernels.other_surface)."""
     case = next(c for c in CASES.cases if c.name == "heavy_body_tightest_fit")
     case = replace(case, motion=replace(case.motion, frames=40))
     result = run_case(case, CASES, body_model, CASES_FILE.parent, short=False)

@@ -138,7 +138,7 @@ def test_the_collider_grids_blocked_prefix_sum_is_the_running_total(n_cells):
     around a block's edge, the total last, and the counts are cleared for the next frame."""
     import taichi as ti
 
-    from datagen.sim import kernels as K
+    from datagen.sim import grid_kernels as GK
     from datagen.sim.backend import init_taichi
 
     init_taichi()
@@ -146,8 +146,8 @@ def test_the_collider_grids_blocked_prefix_sum_is_the_running_total(n_cells):
     counts_np[: min(n_cells, 1100) // 2] = 0  # a run of empty cells across a block's edge
     counts, starts = ti.ndarray(ti.i32, n_cells + 3), ti.ndarray(ti.i32, n_cells + 4)
     counts.from_numpy(np.concatenate([counts_np, [7, 7, 7]]).astype(np.int32))
-    blocks = ti.ndarray(ti.i32, n_cells // K.PREFIX_BLOCK + 2)
-    K.grid_prefix(counts, starts, n_cells, blocks)
+    blocks = ti.ndarray(ti.i32, n_cells // GK.PREFIX_BLOCK + 2)
+    GK.grid_prefix(counts, starts, n_cells, blocks)
     expected = np.concatenate([[0], np.cumsum(counts_np)])
     np.testing.assert_array_equal(starts.to_numpy()[: n_cells + 1], expected)
     np.testing.assert_array_equal(counts.to_numpy(), [0] * n_cells + [7, 7, 7])

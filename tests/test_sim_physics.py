@@ -285,7 +285,7 @@ def test_cloth_on_one_body_part_is_pushed_by_another_that_folds_onto_it():
     asks the nearest triangle (the plate's, outside), did not see it: 200 of the 625 vertices
     were inside the block at once, and none too deep for the QA (measured). Where the collider
     knows the body's parts, a vertex with a facing surface of another part in its cell is
-    searched again as that surface closes in (kernels.nearest_one), takes it as its triangle
+    searched again as that surface closes in (search_kernels.nearest_one), takes it as its triangle
     and is pushed ahead of it. (At 0.5 m/s the block can come from beyond a cell between two
     full searches, and whether the sheet's edge is caught then depends on when it was last
     searched: the gap the docstring of nearest_one names.)"""
@@ -313,7 +313,7 @@ def test_a_part_folding_onto_cloth_from_beyond_a_cell_pushes_it_in_fold_frames()
     between two full searches (every fifth frame) swallows the cloth, as the fast kick's thigh
     closed over trousers that track the calf. In the frames where the two parts fold onto each
     other, each tracked vertex looks the folding part up in its distance field (one transform,
-    one trilinear lookup: kernels.fold_near) and is searched again once that part's surface,
+    one trilinear lookup: search_kernels.fold_near) and is searched again once that part's surface,
     closing face to face, is within a cell: none of the sheet ends up inside the flap."""
     blind, run = _plate_folding_onto_trouser_leg(fold=False)
     assert max(blind) > 100  # without the fields the part guard's gap swallows it (126)
@@ -1137,7 +1137,7 @@ def test_the_body_grid_lists_each_cell_in_triangle_order():
     every cell's triangles in index order, as a serial fill files them."""
     import taichi as ti
 
-    from datagen.sim import kernels as K
+    from datagen.sim import grid_kernels as GK
     from datagen.sim.backend import init_taichi
 
     init_taichi()
@@ -1150,7 +1150,7 @@ def test_the_body_grid_lists_each_cell_in_triangle_order():
     items.from_numpy(shuffled)
     starts_nd = ti.ndarray(ti.i32, len(starts))
     starts_nd.from_numpy(starts)
-    K.grid_sort(starts_nd, items, len(sizes))
+    GK.grid_sort(starts_nd, items, len(sizes))
     np.testing.assert_array_equal(items.to_numpy(), np.concatenate(lists))
 
 
@@ -1237,7 +1237,8 @@ def test_the_one_launch_serial_grid_is_the_three_kernel_grid(hashed, monkeypatch
     import trimesh
 
     from datagen.sim import collider as collider_module
-    from datagen.sim import kernels as K
+    from datagen.sim import grid_kernels as GK
+    from datagen.sim import kernel_common as KC
 
     if hashed:  # one bucket per triangle: many cells share a bucket, some a triangle twice
         monkeypatch.setattr(collider_module, "DENSE_GRID_CELLS", 0)
@@ -1265,20 +1266,20 @@ def test_the_one_launch_serial_grid_is_the_three_kernel_grid(hashed, monkeypatch
 
     counts = ti.ndarray(ti.i32, n_cells + 1)
     starts = ti.ndarray(ti.i32, n_cells + 1)
-    blocks = ti.ndarray(ti.i32, n_cells // K.PREFIX_BLOCK + 2)
+    blocks = ti.ndarray(ti.i32, n_cells // GK.PREFIX_BLOCK + 2)
     items = ti.ndarray(ti.i32, total)
-    tbox = ti.ndarray(K.GUARD, len(faces))
+    tbox = ti.ndarray(KC.GUARD, len(faces))
     from datagen.sim.precision import NP_REAL, VEC3
 
-    boxes = np.zeros((len(faces), K.GUARD.n), NP_REAL)
-    boxes[:, K.T_PART] = -1.0  # set once (a collider without parts): grid_count keeps it
+    boxes = np.zeros((len(faces), KC.GUARD.n), NP_REAL)
+    boxes[:, GK.T_PART] = -1.0  # set once (a collider without parts): grid_count keeps it
     tbox.from_numpy(boxes)
     args = (collider.origin, collider.inv_cell, collider.dims)
-    K.grid_count(collider.b0, collider.b1, VEC3(0.0, 0.0, 0.0), collider.shift,
+    GK.grid_count(collider.b0, collider.b1, VEC3(0.0, 0.0, 0.0), collider.shift,
                  collider.faces, collider.mask, *args, counts, collider.relative_travel,
                  collider.bulge, tbox, True)
-    K.grid_prefix(counts, starts, n_cells, blocks)
-    K.grid_fill(collider.mask, tbox, *args, counts, starts, items, True)
+    GK.grid_prefix(counts, starts, n_cells, blocks)
+    GK.grid_fill(collider.mask, tbox, *args, counts, starts, items, True)
     np.testing.assert_array_equal(serial_starts, starts.to_numpy()[: n_cells + 1])
     np.testing.assert_array_equal(serial_items, items.to_numpy())
     np.testing.assert_array_equal(collider.tbox.to_numpy(), tbox.to_numpy())
@@ -1425,7 +1426,8 @@ def test_the_depth_qa_sees_cloth_deeper_than_a_cell_inside():
 
     # Parallel backends build the columns in three launches (count, prefix sum, fill by atomic
     # cursors): the same triangles in each column, in whatever order.
-    from datagen.sim import kernels as K
+    from datagen.sim import depth_kernels as DK
+    from datagen.sim import grid_kernels as GK
 
     grid, origin, inv_column, dims = collider._column_grid()
     n_cols = int(dims[0] * dims[1])
@@ -1433,10 +1435,10 @@ def test_the_depth_qa_sees_cloth_deeper_than_a_cell_inside():
     serial_items = grid.items.to_numpy()[: serial_starts[-1]]
     starts = ti.ndarray(ti.i32, n_cols + 1)
     items = ti.ndarray(ti.i32, len(serial_items))
-    blocks = ti.ndarray(ti.i32, n_cols // K.PREFIX_BLOCK + 2)
-    K.column_count(collider.b1, collider.faces, origin, inv_column, dims, grid.counts, grid.tbox)
-    K.grid_prefix(grid.counts, starts, n_cols, blocks)
-    K.column_fill(grid.tbox, dims, grid.counts, starts, items)
+    blocks = ti.ndarray(ti.i32, n_cols // GK.PREFIX_BLOCK + 2)
+    DK.column_count(collider.b1, collider.faces, origin, inv_column, dims, grid.counts, grid.tbox)
+    GK.grid_prefix(grid.counts, starts, n_cols, blocks)
+    DK.column_fill(grid.tbox, dims, grid.counts, starts, items)
     np.testing.assert_array_equal(starts.to_numpy(), serial_starts)
     parallel_items = items.to_numpy()
     for c in np.flatnonzero(np.diff(serial_starts)):
@@ -1739,7 +1741,7 @@ def test_contact_friction_is_bounded_by_the_push_that_undoes_inward_motion(
     coefficient times the normal correction that undoes this substep's motion into the body."""
     import taichi as ti
 
-    from datagen.sim import kernels as K
+    from datagen.sim import contact_kernels as CK
     from datagen.sim.precision import NP_REAL, REAL, VEC3
 
     plane = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
@@ -1756,7 +1758,7 @@ def test_contact_friction_is_bounded_by_the_push_that_undoes_inward_motion(
     x = nd(VEC3, [[0.001, 0.1, end_z]])
     xp = nd(VEC3, [[0.0, 0.1, start_z]])
     contact_n, contact_v = nd(VEC3, [[0.0, 0.0, 0.0]]), nd(VEC3, [[0.0, 0.0, 0.0]])
-    K.collide_body(x, xp, nd(REAL, [1.0]), nd(ti.i32, [0]), collider.faces, collider.fadj,
+    CK.collide_body(x, xp, nd(REAL, [1.0]), nd(ti.i32, [0]), collider.faces, collider.fadj,
                    collider.b0, collider.b1, collider.n0,  # the plane is still: its own path
                    nd(REAL, [0.004]), nd(REAL, [friction]), recover_speed * h, 0.05,
                    contact_n, contact_v, h, True)
@@ -1783,7 +1785,7 @@ def _unsearched_near(v0, v1, faces, p0, p1, n_sub: int = 20) -> tuple[int, int]:
     grid cell from every triangle; returns (checks skipped by a guard, triangles found)."""
     import taichi as ti
 
-    from datagen.sim import kernels as K
+    from datagen.sim import kernel_common as KC
     from datagen.sim.precision import NP_REAL, REAL, VEC3
     from datagen.sim.solvers import fresh_guards
 
@@ -1794,7 +1796,7 @@ def _unsearched_near(v0, v1, faces, p0, p1, n_sub: int = 20) -> tuple[int, int]:
     w = ti.ndarray(REAL, n)
     w.fill(1.0)
     tri = ti.ndarray(ti.i32, n)
-    guard = ti.ndarray(K.GUARD, n)
+    guard = ti.ndarray(KC.GUARD, n)
     guard.from_numpy(fresh_guards(n))
     x.from_numpy(p0.astype(NP_REAL))
     collider.nearest(x, w, tri, 1.0, False, guard, collider.max_speed)
@@ -1821,10 +1823,10 @@ def _plate(n: int, size: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_the_grid_search_finds_the_closest_triangle_within_a_cell():
-    """The closest-triangle search measures a triangle only when its box is nearer than the
-    best one so far, and only in the first of its cells that it scans (kernels.nearest_one): it
-    must still return, for every cloth vertex, a triangle at the exact closest distance when
-    one is within a grid cell, and none when all are farther. A cloud of small triangles
+    """The closest-triangle search measures a triangle only when its box is nearer than the best one
+    so far, and only in the first of its cells that it scans (search_kernels.nearest_one): it must
+    still return, for every cloth vertex, a triangle at the exact closest distance when one is
+    within a grid cell, and none when all are farther. A cloud of small triangles
     running 10 cm (four cells) over the frame, each also moving on its own (their swept boxes
     span several cells), searched at its middle; points from on the surface to beyond the
     cell. (Measuring a triangle only in its own first cell, ignoring where the scan starts,
@@ -1878,7 +1880,7 @@ def test_a_frames_full_search_visits_only_the_vertices_that_track_a_triangle():
     and a search of every vertex (SEARCH_ALL) finds both."""
     import taichi as ti
 
-    from datagen.sim import kernels as K
+    from datagen.sim import search_kernels as SK
     from datagen.sim.precision import NP_REAL, REAL, VEC3
 
     plane = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
@@ -1890,9 +1892,9 @@ def test_a_frames_full_search_visits_only_the_vertices_that_track_a_triangle():
     w.fill(1.0)
     tri = ti.ndarray(ti.i32, 2)
     tri.from_numpy(np.array([1, -1], np.int32))  # the first tracks the wrong triangle
-    collider.nearest(x, w, tri, 1.0, K.SEARCH_TRACKED)
+    collider.nearest(x, w, tri, 1.0, SK.SEARCH_TRACKED)
     assert tri.to_numpy().tolist() == [0, -1]
-    collider.nearest(x, w, tri, 1.0, K.SEARCH_ALL)
+    collider.nearest(x, w, tri, 1.0, SK.SEARCH_ALL)
     assert tri.to_numpy().tolist() == [0, 1]
 
 
@@ -1948,7 +1950,7 @@ def test_cloth_moving_with_the_body_is_not_searched_again_within_the_frame():
     of the cells' triangles) keeps it from being searched for the rest of the frame."""
     import taichi as ti
 
-    from datagen.sim import kernels as K
+    from datagen.sim import kernel_common as KC
     from datagen.sim.precision import NP_REAL, REAL, VEC3
     from datagen.sim.solvers import fresh_guards
 
@@ -1962,14 +1964,14 @@ def test_cloth_moving_with_the_body_is_not_searched_again_within_the_frame():
     w.fill(1.0)
     tri = ti.ndarray(ti.i32, 1)
     tri.fill(-1)
-    guard = ti.ndarray(K.GUARD, 1)
+    guard = ti.ndarray(KC.GUARD, 1)
     guard.from_numpy(fresh_guards(1))
     searched_at = []
     for k in range(6):
         s = k / 20
         x.from_numpy((np.array([[0.0, 0.0, 0.03]]) + s * walk).astype(NP_REAL))
         collider.nearest(x, w, tri, s, True, guard, s * collider.max_speed)
-        searched_at.append(float(guard.to_numpy()[0, K.G_TIME]))
+        searched_at.append(float(guard.to_numpy()[0, KC.G_TIME]))
     assert tri.to_numpy()[0] == -1
     assert searched_at == [0.0] * 6  # searched once, at the frame's start
 
@@ -2317,7 +2319,8 @@ def test_the_parallel_self_collision_grid_is_the_serial_counting_sort(monkeypatc
 
 def _layer_contact_inputs():
     """A flat inner sheet (z = 0, 7x7 vertices) and 40 outer vertices that crossed it during
-    the substep, each tracking the inner triangle under it: the arrays of kernels.collide_layers."""
+    the substep, each tracking the inner triangle under it: the arrays of
+    contact_kernels.collide_layers."""
     from datagen.sim.collider import face_adjacency
 
     inner = grid_sheet(6, 0.2, 0.0)
@@ -2352,7 +2355,7 @@ def test_layer_contact_on_parallel_backends_is_the_serial_contact_summed_exactly
     9 cm apart in two GPU runs of the same input)."""
     import taichi as ti
 
-    from datagen.sim import kernels as K
+    from datagen.sim import contact_kernels as CK
     from datagen.sim import parallel_kernels as PK
     from datagen.sim.backend import init_taichi
     from datagen.sim.precision import NP_REAL, REAL, VEC3, VEC4
@@ -2370,7 +2373,7 @@ def test_layer_contact_on_parallel_backends_is_the_serial_contact_summed_exactly
     faces_nd, fadj_nd = nd(ti.math.ivec3, faces), nd(ti.math.ivec3, fadj)
     x0 = x.astype(NP_REAL)
     serial_nrm, gathered_nrm = ti.ndarray(VEC3, n), ti.ndarray(VEC3, n)
-    K.vertex_normals(nd(VEC3, x0), faces_nd, serial_nrm)
+    CK.vertex_normals(nd(VEC3, x0), faces_nd, serial_nrm)
     PK.vertex_normals_gathered(nd(VEC3, x0), faces_nd, *_vertex_lists_nd(faces.ravel(), n),
                               gathered_nrm)
     assert np.abs(serial_nrm.to_numpy() - gathered_nrm.to_numpy()).max() < 1e-6
@@ -2378,12 +2381,12 @@ def test_layer_contact_on_parallel_backends_is_the_serial_contact_summed_exactly
 
     moved = {}
     for name, exact, react in (("float", False, ti.ndarray(VEC4, n)),
-                               ("exact", True, ti.ndarray(K.REACT_EXACT, n))):
+                               ("exact", True, ti.ndarray(CK.REACT_EXACT, n))):
         react.fill(0)
         xs = nd(VEC3, x0)
         count = ti.ndarray(REAL, n)
         count.fill(0.0)
-        K.collide_layers(xs, nd(VEC3, xp.astype(NP_REAL)), nd(REAL, np.full(n, 50.0, NP_REAL)),
+        CK.collide_layers(xs, nd(VEC3, xp.astype(NP_REAL)), nd(REAL, np.full(n, 50.0, NP_REAL)),
                nd(REAL, l_w.astype(NP_REAL)), nd(ti.i32, tri.copy()), faces_nd, fadj_nd,
                serial_nrm, nd(REAL, np.full(n, 0.002, NP_REAL)),
                nd(REAL, np.full(n, 0.3, NP_REAL)), 0.0, 0.02, ti.ndarray(VEC3, n),

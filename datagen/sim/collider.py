@@ -12,8 +12,13 @@ import numpy as np
 import taichi as ti
 
 from datagen.sim import backend
+from datagen.sim import contact_kernels as CK
+from datagen.sim import depth_kernels as DK
+from datagen.sim import grid_kernels as GK
+from datagen.sim import kernel_common as KC
 from datagen.sim import kernels as K
 from datagen.sim import parallel_kernels as PK
+from datagen.sim import search_kernels as SK
 from datagen.sim.backend import init_taichi
 from datagen.sim.precision import NP_REAL, REAL, VEC3
 
@@ -119,22 +124,22 @@ def path_bounds(motion: np.ndarray, tangents: np.ndarray | None,
 # that another solver's collider proved), and exact as float32 (2**24 grids before they repeat).
 _GRID_TAGS = (1 + k % (2**24 - 1) for k in itertools.count())
 # Edge (m) of the grid's cells. A grid spanning more cells than DENSE_GRID_CELLS is hashed
-# (kernels.grid_cell): one body spans about 10^5 cells, but a batch's lattice
+# (grid_kernels.grid_cell): one body spans about 10^5 cells, but a batch's lattice
 # (datagen.sim.batch) spans every scene's whole motion, and 64 scenes of 10 s walks would need
 # 1.4 billion dense cells (11 GB of counts and offsets, past int32 indices). A hashed grid has
 # HASH_BUCKETS_PER_TRIANGLE buckets per colliding triangle (a power of two), whatever the extent.
 GRID_CELL = 0.025
 DENSE_GRID_CELLS = 2**22
 HASH_BUCKETS_PER_TRIANGLE = 8
-# The depth QA's inside test (kernels.winding_along_ray) files the whole body in columns of this
-# edge (m), across its ray. Half of it built the walking body's columns 1.3x slower (94k entries
-# against 54k) and answered the t-shirt's points no faster.
+# The depth QA's inside test (depth_kernels.winding_along_ray) files the whole body in columns of
+# this edge (m), across its ray. Half of it built the walking body's columns 1.3x slower (94k
+# entries against 54k) and answered the t-shirt's points no faster.
 COLUMN_CELL = GRID_CELL
 
 
 @dataclass
 class TriangleGrid:
-    """One grid's device arrays: each triangle's box (`tbox`, kernels.GUARD: low and high
+    """One grid's device arrays: each triangle's box (`tbox`, kernel_common.GUARD: low and high
     corners, speed, body part), the triangles filed per cell (`starts`, `items`), and the
     build's scratch (`counts`, zero between builds; `block_starts`, the parallel prefix's)."""
 
@@ -149,14 +154,15 @@ class TriangleGrid:
 
     def reserve_cells(self, n_cells: int, block_sums: bool) -> None:
         """Room for `n_cells` cells' counts (zero) and starts, half as many again when they
-        grow, and with `block_sums` for the parallel prefix's block sums (kernels.grid_prefix)."""
+        grow, and with `block_sums` for the parallel prefix's block sums
+        (grid_kernels.grid_prefix)."""
         if n_cells + 1 <= self.n_cells_alloc:
             return
         self.n_cells_alloc = int((n_cells + 1) * 1.5)
         self.counts = ti.ndarray(ti.i32, self.n_cells_alloc)
         self.starts = ti.ndarray(ti.i32, self.n_cells_alloc + 1)
         if block_sums:
-            self.block_starts = ti.ndarray(ti.i32, self.n_cells_alloc // K.PREFIX_BLOCK + 2)
+            self.block_starts = ti.ndarray(ti.i32, self.n_cells_alloc // GK.PREFIX_BLOCK + 2)
         self.counts.fill(0)
 
     def reserve_items(self, entries: int, spare: float = 1.5) -> bool:
@@ -178,7 +184,8 @@ class BodyCollider:
     ) -> None:
         """`face_parts`: each face's body part (ints from 0), or None for a collider that is one
         surface (a sphere, a garment under another). With parts, a cloth vertex is searched
-        again when a facing surface of another part may come near it (kernels.nearest_one)."""
+        again when a facing surface of another part may come near it
+        (search_kernels.nearest_one)."""
         init_taichi()
         # A layer collider reads its normals from the cloth each substep: none per frame.
         self.normals = normals
@@ -189,7 +196,7 @@ class BodyCollider:
         self.used_vertices = np.unique(self.faces_np[self.mask_np])
         self.used = ti.ndarray(ti.i32, max(len(self.used_vertices), 1))
         self.used.from_numpy(np.resize(self.used_vertices.astype(np.int32), self.used.shape[0]))
-        # The grid's extent (kernels.collider_bounds). Host arrays, read in place by kernels
+        # The grid's extent (grid_kernels.collider_bounds). Host arrays, read in place by kernels
         # on a CPU: a transfer to or from a device array costs 0.09 ms in Taichi's Python.
         self.box = np.zeros((2, 3), NP_REAL)
         # Parallel backends gather each vertex's face normals (datagen.sim.parallel_kernels).
@@ -224,27 +231,27 @@ class BodyCollider:
         # triangles' swept boxes grow by it. The frame's end grid has none.
         self.bulge = np.zeros(n_vertices, NP_REAL)
         self.no_bulge = np.zeros(n_vertices, NP_REAL)
-        tbox = ti.ndarray(K.GUARD, len(self.faces_np))  # per triangle (K.grid_count)
-        boxes = np.zeros((len(self.faces_np), K.GUARD.n), NP_REAL)
+        tbox = ti.ndarray(KC.GUARD, len(self.faces_np))  # per triangle (GK.grid_count)
+        boxes = np.zeros((len(self.faces_np), KC.GUARD.n), NP_REAL)
         if face_parts is None:
-            boxes[:, K.T_PART] = -1.0
+            boxes[:, GK.T_PART] = -1.0
         else:
             face_parts = np.asarray(face_parts)
             if face_parts.shape != (len(self.faces_np),) or face_parts.min(initial=0) < 0:
                 raise ValueError(f"face_parts: expected one part index >= 0 per face "
                                  f"({len(self.faces_np)}), got shape {face_parts.shape}")
-            # The search guards pack a distance below a cell after the part (K.OTHER_NONE).
-            assert cell < K.OTHER_NONE, cell
-            boxes[:, K.T_PART] = face_parts
+            # The search guards pack a distance below a cell after the part (SK.OTHER_NONE).
+            assert cell < SK.OTHER_NONE, cell
+            boxes[:, GK.T_PART] = face_parts
         tbox.from_numpy(boxes)
         # Two grids over the same cells: `swept` files each triangle's box swept over the frame
         # (the solver's searches at any fraction of it); `end` its box at the frame's end only,
         # for the depth QA (signed_distance), built when asked for. A walking body's swept boxes
         # are filed 98k times for its 18.5k colliding triangles (143k before the cells moved
-        # with the body: kernels.count_triangle), its end boxes 52k times; the QA's search took
+        # with the body: grid_kernels.count_triangle), its end boxes 52k times; the QA's search took
         # 24 ms a frame through the swept grid in fixed cells, 14 through the end grid (plus 2
         # to build it).
-        end_tbox = ti.ndarray(K.GUARD, len(self.faces_np))
+        end_tbox = ti.ndarray(KC.GUARD, len(self.faces_np))
         end_tbox.from_numpy(boxes)
         self.swept = TriangleGrid(tbox)
         self.end = TriangleGrid(end_tbox)
@@ -263,7 +270,8 @@ class BodyCollider:
         self._outward = 0
         self._prev = None
         self._at_rest = False
-        self.grid_tag = 0  # this collider's grid's number (kernels.nearest_one's frame guards)
+        # this collider's grid's number (search_kernels.nearest_one's frame guards)
+        self.grid_tag = 0
 
     # The solver's kernels take the swept grid's arrays.
     @property
@@ -318,7 +326,7 @@ class BodyCollider:
         # here, and its grid's bounds 1 ms).
         motion = np.ascontiguousarray((v1 - v0).T, dtype=np.float64)
         # The body's mean motion over the frame: cloth near the torso moves with it
-        # (kernels.nearest_one's guards).
+        # (search_kernels.nearest_one's guards).
         self.shift_np = motion.mean(axis=1)
         self.shift = VEC3(*self.shift_np)
         bounds = path_bounds(motion, tangents if self.normals else None, self.shift_np)
@@ -337,7 +345,7 @@ class BodyCollider:
 
     def set_fold(self, blob: np.ndarray | None) -> None:
         """The coming frame's fold fields (FoldFields.blob), None outside a fold: the part
-        guard's lookup of folding parts (kernels.fold_near)."""
+        guard's lookup of folding parts (search_kernels.fold_near)."""
         if blob is None:
             if self.fold_np.shape[0] == 1 and self.fold_np[0] == 0.0:
                 return
@@ -352,13 +360,13 @@ class BodyCollider:
         if not self.normals:
             return
         if self.vertex_faces is None:
-            K.vertex_normals(b, self.faces, n)
+            CK.vertex_normals(b, self.faces, n)
         else:
             PK.vertex_normals_gathered(b, self.faces, *self.vertex_faces, n)
 
     def _build_grid(self) -> None:
         self.grid_tag = next(_GRID_TAGS)
-        K.collider_bounds(self.b0, self.b1, self.shift, self.used, self.box, backend.serial())
+        GK.collider_bounds(self.b0, self.b1, self.shift, self.used, self.box, backend.serial())
         # A cell's margin, and the path's widest departure from the chords (path_bounds).
         margin = self.cell + self.widest_bulge
         lo, hi = self.box[0] - margin, self.box[1] + margin
@@ -367,7 +375,7 @@ class BodyCollider:
         self.hashed = n_cells > DENSE_GRID_CELLS
         if self.hashed:
             n_cells = self.hash_buckets
-            dims = np.array([0, n_cells - 1, 0], dtype=np.int64)  # kernels.grid_cell
+            dims = np.array([0, n_cells - 1, 0], dtype=np.int64)  # grid_kernels.grid_cell
         self.n_cells = n_cells
         self.origin = VEC3(*lo.astype(NP_REAL))
         self.origin_np = lo.astype(np.float64)
@@ -388,30 +396,31 @@ class BodyCollider:
     def _fill(self, grid: TriangleGrid, b0, b1, shift0, shift1, bulge: np.ndarray) -> None:
         """File the triangles' boxes swept from b0 - shift0 to b1 - shift1, each grown by its
         vertices' `bulge`, into `grid` (this frame's cells, in coordinates that move with the
-        body's mean motion: kernels.count_triangle), growing its arrays where they are short."""
+        body's mean motion: grid_kernels.count_triangle), growing its arrays where they are
+        short."""
         n_cells = self.n_cells
         grid.tag = self.grid_tag
         grid.reserve_cells(n_cells, block_sums=not backend.serial())
         if backend.serial():
-            # The grid in one launch (kernels.grid_build_serial), again with a longer `items`
+            # The grid in one launch (grid_kernels.grid_build_serial), again with a longer `items`
             # when it did not fit.
             grid.reserve_items(4 * len(self.faces_np), spare=1.0)  # a first guess, kept after
             args = (b0, b1, shift0, shift1, self.faces, self.mask, self.origin, self.inv_cell,
                     self.dims, n_cells, grid.counts, self.relative_travel, bulge, grid.tbox,
                     grid.starts)
-            total = K.grid_build_serial(*args, grid.items)
+            total = GK.grid_build_serial(*args, grid.items)
             if grid.reserve_items(total):
-                K.grid_build_serial(*args, grid.items)
+                GK.grid_build_serial(*args, grid.items)
             return
         # Parallel backends from here: the kernels' `serialize` flags are False (a test runs
         # these three kernels serialized to compare them with the one-launch serial grid).
-        K.grid_count(b0, b1, shift0, shift1, self.faces, self.mask, self.origin, self.inv_cell,
+        GK.grid_count(b0, b1, shift0, shift1, self.faces, self.mask, self.origin, self.inv_cell,
                      self.dims, grid.counts, self.relative_travel, bulge, grid.tbox, False)
-        K.grid_prefix(grid.counts, grid.starts, n_cells, grid.block_starts)
+        GK.grid_prefix(grid.counts, grid.starts, n_cells, grid.block_starts)
         grid.reserve_items(int(grid.starts[n_cells]))
-        K.grid_fill(self.mask, grid.tbox, self.origin, self.inv_cell, self.dims, grid.counts,
+        GK.grid_fill(self.mask, grid.tbox, self.origin, self.inv_cell, self.dims, grid.counts,
                     grid.starts, grid.items, False)
-        K.grid_sort(grid.starts, grid.items, n_cells)
+        GK.grid_sort(grid.starts, grid.items, n_cells)
         # grid_fill used counts as cursors; they must be zero for the next frame's counting.
         grid.counts.fill(0)
 
@@ -422,7 +431,8 @@ class BodyCollider:
         by its closest triangle. `x` may be a Taichi array of vectors (the solver's positions,
         read in place: a copy in costs about 0.2 ms). `hint` (a Taichi i32 array of N
         triangles, or -1, such as the solver's tracked ones) and the closest triangles of the
-        last call with as many points only speed the search up (kernels.grid_signed_distance)."""
+        last call with as many points only speed the search up
+        (depth_kernels.grid_signed_distance)."""
         n = x.shape[0]
         if getattr(self, "_sd_n", None) != n:
             self._sd_n = n
@@ -439,7 +449,7 @@ class BodyCollider:
         grid = self._end_grid()
         columns, origin, inv_column, dims = self._column_grid()
         # Without a hint the last call's triangles serve as both (measured twice: harmless).
-        K.grid_signed_distance(points, self._sd_last if hint is None else hint,
+        DK.grid_signed_distance(points, self._sd_last if hint is None else hint,
                                self._sd_last, self.b1, self.n1, self.faces, self.mask,
                                self.origin, self.inv_cell, self.dims, self.shift,
                                grid.starts, grid.items, grid.tbox, float(self.cell),
@@ -448,8 +458,8 @@ class BodyCollider:
         return self._sd_out.to_numpy().astype(np.float64)
 
     def _column_grid(self) -> tuple[TriangleGrid, VEC3, float, ti.math.ivec3]:
-        """The whole mesh at the frame's end filed in columns across kernels.RAY_AXIS
-        (kernels.column_grid_build), built once per frame, for signed_distance's inside test;
+        """The whole mesh at the frame's end filed in columns across depth_kernels.RAY_AXIS
+        (depth_kernels.column_grid_build), built once per frame, for signed_distance's inside test;
         an empty stand-in where the collider is not closed (the kernel then reads none)."""
         if self._columns is None:
             self._columns = TriangleGrid(tbox=None)
@@ -474,7 +484,7 @@ class BodyCollider:
     def _column_extent(self) -> tuple[VEC3, float, ti.math.ivec3]:
         """The column grid's corner, inverse column edge and columns along each of its two
         axes, over the body at the frame's end."""
-        axes = [(K.RAY_AXIS + 1) % 3, (K.RAY_AXIS + 2) % 3]
+        axes = [(DK.RAY_AXIS + 1) % 3, (DK.RAY_AXIS + 2) % 3]
         # Reduced as rows (set_frames says why).
         rows = np.ascontiguousarray(np.asarray(self.v1_np).T, dtype=np.float64)
         lo = rows.min(axis=1) - COLUMN_CELL
@@ -500,24 +510,24 @@ class BodyCollider:
         if backend.serial():
             args = (self.b1, self.faces, origin, inv_column, dims, grid.counts, grid.starts,
                     grid.tbox)
-            total = K.column_grid_build(*args, grid.items)
+            total = DK.column_grid_build(*args, grid.items)
             if grid.reserve_items(total):
-                K.column_grid_build(*args, grid.items)
+                DK.column_grid_build(*args, grid.items)
         else:  # as _fill's parallel grid: count, prefix sum, fill
-            K.column_count(self.b1, self.faces, origin, inv_column, dims, grid.counts, grid.tbox)
-            K.grid_prefix(grid.counts, grid.starts, n_cols, grid.block_starts)
+            DK.column_count(self.b1, self.faces, origin, inv_column, dims, grid.counts, grid.tbox)
+            GK.grid_prefix(grid.counts, grid.starts, n_cols, grid.block_starts)
             grid.reserve_items(int(grid.starts[n_cols]))
-            K.column_fill(grid.tbox, dims, grid.counts, grid.starts, grid.items)
+            DK.column_fill(grid.tbox, dims, grid.counts, grid.starts, grid.items)
 
-    def nearest(self, x, w, tri, s: float, which: int = K.SEARCH_ALL, guard=None,
+    def nearest(self, x, w, tri, s: float, which: int = SK.SEARCH_ALL, guard=None,
                 odo: float = 0.0) -> None:
-        """Reset the `which` cloth vertices' tracked triangles (kernels.SEARCH_ALL,
+        """Reset the `which` cloth vertices' tracked triangles (search_kernels.SEARCH_ALL,
         SEARCH_UNTRACKED, SEARCH_TRACKED) to the closest one within a grid cell; untracked
         vertices that may not have come near are skipped (`guard` and `odo` as in
-        kernels.nearest_one)."""
+        search_kernels.nearest_one)."""
         if guard is None:
             guard = self._scratch_guard(x.shape[0])
-        K.grid_nearest(x, w, self.b0, self.b1, self.faces, self.origin, self.inv_cell,
+        SK.grid_nearest(x, w, self.b0, self.b1, self.faces, self.origin, self.inv_cell,
                        self.dims, self.starts, self.items, float(s), float(self.cell), tri,
                        int(which), guard, float(odo), float(self.grid_tag),
                        self.shift, self.tbox, self.fold_nd, 0)
@@ -527,7 +537,7 @@ class BodyCollider:
 
         if getattr(self, "_guard_n", None) != n:
             self._guard_n = n
-            self._guard = ti.ndarray(K.GUARD, n)
+            self._guard = ti.ndarray(KC.GUARD, n)
         self._guard.from_numpy(fresh_guards(n))
         return self._guard
 

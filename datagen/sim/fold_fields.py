@@ -3,7 +3,7 @@ knee and the elbow: datagen.body.parts.FLEXION_SIDES), in each part's own moving
 frames in which the body stage found them folding at that joint.
 
 Why: a tracked cloth vertex follows its own triangle's surface, and the part guard
-(kernels.nearest_one) searches it again only when the last search saw another part's facing
+(search_kernels.nearest_one) searches it again only when the last search saw another part's facing
 surface within a grid cell. A thigh closing over trousers that track the calf or the belly
 arrives from farther than a cell between full searches and swallows them (the fast kick). Proofs
 that nothing comes near over a frame scanned triangles over regions that grow with the limb's
@@ -43,7 +43,7 @@ FOLD_LEAD_FRAMES = 2
 # slots, then three tables of S entries indexed by body part: the bits of the field slots that
 # fold onto the part, counted from the part's base slot (T_PARTNERS); that base slot
 # (T_BASE); and the part's own field's slot plus one (T_OWN, 0: none), whose motion the
-# vertices tracking it move with (kernels.nearest_one). Then per field HEADER values and the
+# vertices tracking it move with (search_kernels.nearest_one). Then per field HEADER values and the
 # data, each grid point's values at the frame's two ends side by side. A batch of scenes
 # (JoinedFoldFields) numbers each scene's parts apart and puts its fields in consecutive slots
 # from its base, so a part's partners, always of its own scene, fit in MAX_FIELDS bits however
@@ -277,7 +277,8 @@ def pack(scenes: list[tuple[FrameFields, int, np.ndarray]]) -> np.ndarray:
 
 
 def read_partners(blob: np.ndarray, part: int) -> list[int]:
-    """The field slots folding onto `part` in a packed blob (what kernels.fold_near reads)."""
+    """The field slots folding onto `part` in a packed blob (what search_kernels.fold_near
+    reads)."""
     n_slots = int(blob[B_SLOTS])
     if part >= n_slots:
         return []

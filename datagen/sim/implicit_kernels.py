@@ -8,7 +8,7 @@ iteration would dominate them). The per-element work lives in functions shared b
 
 import taichi as ti
 
-from datagen.sim.kernels import F1, I1, I2, I4, V3, V4, vec3
+from datagen.sim.kernel_common import F1, I1, I2, I4, V3, V4, vec3
 from datagen.sim.precision import MAT3, REAL
 
 mat3 = MAT3

@@ -3,7 +3,7 @@ task or sums in the order threads run, or where a launch per effect costs more t
 the xpbd solver's substep start and its iterations' sweeps (one launch each), its strain limit
 after contact (coloured sweeps), self-collision (self_collide_parallel), vertex normals of the
 inner garment and of the body collider (vertex_normals_gathered below), the outer garments'
-pushes (kernels.collide_layers summing in fixed point), and the explicit solver's forces
+pushes (contact_kernels.collide_layers summing in fixed point), and the explicit solver's forces
 (gathered per vertex).
 
 The serial form (kernels.limit_after_contact_active) appends to shared lists, so it runs as one
@@ -19,33 +19,21 @@ not by the device, and most substeps stop after the first sweep.
 
 import taichi as ti
 
+from datagen.sim.contact_kernels import collide_one, vertex_normal_finish_one
+from datagen.sim.grid_kernels import hash_cell, sort_cells
+from datagen.sim.kernel_common import F1, I1, I2, I3, I4, V3, V4, V8, lerp3, vec3
 from datagen.sim.kernels import (
-    F1,
-    I1,
-    I2,
-    I3,
-    I4,
-    V3,
-    V4,
-    V8,
     bend_force,
     bend_gs_one,
-    collide_one,
     colour_range,
-    hash_cell,
-    lerp3,
     limit_after_contact_one,
     predict_one,
     pressure_face_vector,
-    self_cell,
-    self_pair_target,
-    sort_cells,
     spring_force,
     spring_gs_one,
-    vec3,
-    vertex_normal_finish_one,
 )
 from datagen.sim.precision import REAL, VEC4
+from datagen.sim.self_collision_kernels import self_cell, self_pair_target
 
 # -- the xpbd substep in few launches ------------------------------------------------------------
 # A parallel backend pays for each launch from Python whatever the work (a GPU: 6-12 us on the
@@ -228,8 +216,8 @@ def self_push(i: ti.i32, x: V3, xp: V3, w: F1, owner: I1, rest: V3, starts: I1, 
               inv_cell: REAL, mask: ti.i32, radius: REAL, min_rest: REAL,
               recover: REAL) -> vec3:
     """Vertex i's share of pushing it and every nearby vertex of its garment apart to `radius`
-    (kernels.self_collide_one, seen from i's side and reading positions as they are), averaged
-    over the pairs it is in."""
+    (self_collision_kernels.self_collide_one, seen from i's side and reading positions as they
+    are), averaged over the pairs it is in."""
     xi = x[i]
     oi = owner[i]
     r2 = radius * radius
@@ -266,12 +254,12 @@ SCAN_BLOCK = 256
 def self_collide_parallel(x: V3, xp: V3, w: F1, owner: I1, rest: V3, counts: I1, starts: I1,
                           items: I1, scan: I1, push: V3, inv_cell: REAL, mask: ti.i32,
                           radius: REAL, min_rest: REAL, recover: REAL):
-    """kernels.self_collide on a parallel backend. The hashed grid is built in parallel: counts
-    by atomic adds, a blocked prefix sum (`scan`: one entry per SCAN_BLOCK cells, and one), the
-    vertices filed by atomic cursors and each cell's list then sorted by index, so the grid and
-    every sum below are the same on any number of threads. Then each vertex's push (self_push)
-    from the positions as they are, and all pushes at once (Jacobi with averaging: a vertex
-    pressed by a whole layer moves once, not once per neighbour)."""
+    """self_collision_kernels.self_collide on a parallel backend. The hashed grid is built in
+    parallel: counts by atomic adds, a blocked prefix sum (`scan`: one entry per SCAN_BLOCK cells,
+    and one), the vertices filed by atomic cursors and each cell's list then sorted by index, so the
+    grid and every sum below are the same on any number of threads. Then each vertex's push
+    (self_push) from the positions as they are, and all pushes at once (Jacobi with averaging: a
+    vertex pressed by a whole layer moves once, not once per neighbour)."""
     n_cells = mask + 1
     for c in range(n_cells):
         counts[c] = 0
@@ -302,17 +290,17 @@ def self_collide_parallel(x: V3, xp: V3, w: F1, owner: I1, rest: V3, counts: I1,
 
 
 # -- garment-garment collision -------------------------------------------------------------------
-# The serial form (kernels.vertex_normals, kernels.collide_layers) adds into shared vertices from
-# a loop over faces or outer vertices; in parallel those float sums come out in the order threads
-# run, so two runs of the same input differ at the last bit and a contact-rich scene amplifies
-# that (the layered hard case on a GPU: 8.7 mm apart after the settle, 9 cm by the end). Here
-# each inner vertex gathers its faces' normals itself; the pushes are summed in fixed point by
-# kernels.collide_layers (`exact`).
+# The serial form (contact_kernels.vertex_normals, contact_kernels.collide_layers) adds into shared
+# vertices from a loop over faces or outer vertices; in parallel those float sums come out in the
+# order threads run, so two runs of the same input differ at the last bit and a contact-rich scene
+# amplifies that (the layered hard case on a GPU: 8.7 mm apart after the settle, 9 cm by the end).
+# Here each inner vertex gathers its faces' normals itself; the pushes are summed in fixed point by
+# contact_kernels.collide_layers (`exact`).
 
 
 @ti.kernel
 def vertex_normals_gathered(x: V3, faces: I3, starts: I1, entries: I1, nrm: V3):
-    """kernels.vertex_normals with each vertex summing its own faces' area-weighted normals
+    """contact_kernels.vertex_normals with each vertex summing its own faces' area-weighted normals
     (entry 3 t + k: corner k of face t is this vertex): one thread per sum, so the sums do not
     depend on how threads are scheduled. (They are not the serial form's bit for bit: the
     compiler may reassociate a sum in a loop.)"""

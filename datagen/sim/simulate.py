@@ -450,7 +450,7 @@ class ColliderTrack:
     # (T,) each face's body part, or None for a collider that is one surface (BodyCollider)
     face_parts: np.ndarray | None = None
     # The distance fields of the parts folding across a joint in the body stage's flexion
-    # frames (the hip, knee and elbow), for the part guard (kernels.fold_near); a batch's
+    # frames (the hip, knee and elbow), for the part guard (search_kernels.fold_near); a batch's
     # scenes' joined (datagen.sim.batch); None where none fold.
     fold_fields: FoldFields | JoinedFoldFields | None = None
     # A body's neck joint at each frame (F, 3) and at rest (3,), for the note a rejection as

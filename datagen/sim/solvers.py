@@ -23,8 +23,12 @@ import numpy as np
 import taichi as ti
 
 from datagen.sim import backend
+from datagen.sim import contact_kernels as CK
+from datagen.sim import kernel_common as KC
 from datagen.sim import kernels as K
 from datagen.sim import parallel_kernels as PK
+from datagen.sim import search_kernels as SK
+from datagen.sim import self_collision_kernels as SCK
 from datagen.sim.backend import init_taichi
 from datagen.sim.effects import Effects
 from datagen.sim.model import (
@@ -72,10 +76,10 @@ class SolverSettings:
 
 
 def fresh_guards(n: int) -> np.ndarray:
-    """Per-vertex search guards (kernels.nearest_one) that make the first search happen: an
+    """Per-vertex search guards (search_kernels.nearest_one) that make the first search happen: an
     odometer reading from long ago, and no grid (grids are numbered from 1)."""
-    g = np.zeros((n, K.GUARD.n), NP_REAL)
-    g[:, K.G_ODO] = -1e30
+    g = np.zeros((n, KC.GUARD.n), NP_REAL)
+    g[:, KC.G_ODO] = -1e30
     return g
 
 
@@ -221,7 +225,7 @@ class ClothSolver:
         self.thickness = _nd(REAL, model.thickness.astype(NP_REAL))
         self.friction = _nd(REAL, model.friction.astype(NP_REAL))
         self.tri = _nd(ti.i32, -np.ones(n, np.int32))
-        self.guard = _nd(K.GUARD, fresh_guards(n))
+        self.guard = _nd(KC.GUARD, fresh_guards(n))
         self._tracking: dict | None = None  # get_tracking's snapshot
         self.odo = 0.0  # metres the body's fastest vertex has travelled (see nearest_one)
         self.contact_n = _nd(VEC3, np.zeros((n, 3), NP_REAL))
@@ -398,18 +402,18 @@ class ClothSolver:
             layer_w[model.pinned if self.effects.pins else []] = 0.0
         self.layer_w = _nd(REAL, layer_w)
         # The inner garment's vertex normals at its current positions, and the outer
-        # garments' push back on it (kernels.collide_layer_one).
+        # garments' push back on it (contact_kernels.collide_layer_one).
         n_layer = self.n if self.use_layers else 1
         self.layer_nrm = ti.ndarray(VEC3, n_layer)
         # Parallel backends sum the pushes in fixed point and gather the normals per vertex.
-        self.layer_react = ti.ndarray(K.REACT_EXACT if self.parallel else VEC4, n_layer)
+        self.layer_react = ti.ndarray(CK.REACT_EXACT if self.parallel else VEC4, n_layer)
         self.layer_react.fill(0)
         if self.parallel and self.use_layers:
             self.layer_vertex_faces = _vertex_lists_nd(faces.ravel(), self.n)
         self.layer_count = ti.ndarray(REAL, n_layer)  # pushes each took in the last substep
         self.layer_count.fill(0.0)
         self.layer_tri = _nd(ti.i32, -np.ones(self.n, np.int32))
-        self.layer_guard = _nd(K.GUARD, fresh_guards(self.n))
+        self.layer_guard = _nd(KC.GUARD, fresh_guards(self.n))
         self.layer_odo = 0.0  # metres the inner garment's fastest vertex has travelled
         self.layer_travel = 0.0  # ... and travels in the current frame
 
@@ -440,7 +444,7 @@ class ClothSolver:
         c.set_frames(path0, path1)
         if search:
             self._run("garment_collision", c.nearest, self.x, self.layer_w, self.layer_tri, 0.0,
-                      K.SEARCH_TRACKED, self.layer_guard, self.layer_odo)
+                      SK.SEARCH_TRACKED, self.layer_guard, self.layer_odo)
 
     def end_frame(self, collider) -> None:
         if collider is not None and self.effects.body_collision:
@@ -452,15 +456,15 @@ class ClothSolver:
         if self.use_layers:
             c = self.layer_collider
             self._run("garment_collision", c.nearest, self.x, self.layer_w, self.layer_tri, s1,
-                      K.SEARCH_UNTRACKED, self.layer_guard,
+                      SK.SEARCH_UNTRACKED, self.layer_guard,
                       self.layer_odo + s1 * self.layer_travel)
             if self.parallel:
                 self._run("garment_collision", PK.vertex_normals_gathered, self.x, c.faces,
                           *self.layer_vertex_faces, self.layer_nrm)
             else:
-                self._run("garment_collision", K.vertex_normals, self.x, c.faces,
+                self._run("garment_collision", CK.vertex_normals, self.x, c.faces,
                           self.layer_nrm)
-            self._run("garment_collision", K.collide_layers, self.x, self.xp, self.w,
+            self._run("garment_collision", CK.collide_layers, self.x, self.xp, self.w,
                       self.layer_w, self.layer_tri, c.faces, c.fadj, self.layer_nrm,
                       self.thickness, self.friction, self.settings.recover_speed * h,
                       2.0 * c.cell, self.contact_n, self.contact_v, h, self.layer_react,
@@ -473,7 +477,7 @@ class ClothSolver:
                           self.self_radius, self.self_min_rest,
                           self.settings.recover_speed * h)
                 return
-            self._run("self_collision", K.self_collide, self.x, self.xp, self.w, self.s_owner,
+            self._run("self_collision", SCK.self_collide, self.x, self.xp, self.w, self.s_owner,
                       self.s_rest, self.s_counts, self.s_starts, self.s_items,
                       self.self_inv_cell, self.s_mask, self.self_radius, self.self_min_rest,
                       self.settings.recover_speed * h)
@@ -496,9 +500,9 @@ class ClothSolver:
         copied on the device into this solver's snapshot, which the next call overwrites (a
         frame takes one before it runs; reading them back cost 0.5 ms a frame)."""
         if self._tracking is None:
-            kinds = {"tri": ti.i32, "guard": K.GUARD}
+            kinds = {"tri": ti.i32, "guard": KC.GUARD}
             if self.use_layers:
-                kinds.update(layer_tri=ti.i32, layer_guard=K.GUARD)
+                kinds.update(layer_tri=ti.i32, layer_guard=KC.GUARD)
             self._tracking = {name: ti.ndarray(kind, self.n) for name, kind in kinds.items()}
         t = self._tracking
         K.copy_tracking(self.tri, self.guard, t["tri"], t["guard"], backend.serial())
@@ -552,7 +556,7 @@ class ClothSolver:
                   self.contact_v, h)
 
     def _collide(self, collider, s0: float, s1: float, h: float) -> None:
-        self._run("body_collision", K.clear_contacts, self.contact_n, self.contact_v)
+        self._run("body_collision", CK.clear_contacts, self.contact_n, self.contact_v)
         if collider is None or not self.effects.body_collision:
             return
         self._search_and_collide(collider, s0, s1, h)
@@ -567,7 +571,7 @@ class ClothSolver:
         (to the last bit without fast math: backend.py)."""
         c = collider
         self._interpolate_body(c, s0, s1)
-        self._run("body_collision", K.nearest_untracked, self.x, self.w, c.bs1, c.faces,
+        self._run("body_collision", SK.nearest_untracked, self.x, self.w, c.bs1, c.faces,
                   c.origin, c.inv_cell, c.dims, c.starts, c.items, c.cell, self.tri,
                   self.guard, self.odo, c.max_speed, c.grid_tag, s1, c.shift, c.tbox,
                   c.fold_nd, 0)
@@ -575,7 +579,7 @@ class ClothSolver:
 
     def _collide_interpolated(self, c, h: float, friction: bool) -> None:
         """Contact with the body as _interpolate_body last put it in c.bs0, c.bs1, c.ns1."""
-        self._run("body_collision", K.collide_body, self.x, self.xp, self.w, self.tri, c.faces,
+        self._run("body_collision", CK.collide_body, self.x, self.xp, self.w, self.tri, c.faces,
                   c.fadj, c.bs0, c.bs1, c.ns1, self.thickness, self.friction,
                   self.settings.recover_speed * h, 2.0 * c.cell, self.contact_n, self.contact_v,
                   h, friction)
@@ -586,7 +590,7 @@ class ClothSolver:
         triangles they track, and the others are searched at every substep)."""
         if collider is not None and self.effects.body_collision:
             self._run("body_collision", collider.nearest, self.x, self.w, self.tri, s,
-                      K.SEARCH_TRACKED, self.guard, self.odo + s * collider.max_speed)
+                      SK.SEARCH_TRACKED, self.guard, self.odo + s * collider.max_speed)
 
     def substep(self, h: float, collider, s0: float, s1: float) -> None:
         raise NotImplementedError
@@ -634,7 +638,7 @@ class XPBDSolver(ClothSolver):
             self.bend_inv_mass = (wk * kw).sum(axis=1)
             # The sweeps' weights and each vertex's inverse mass times its weight
             # (kernels.bend_delta).
-            self.bend_kk = _nd(K.GUARD, np.concatenate([kw, wk], axis=1).astype(NP_REAL))
+            self.bend_kk = _nd(KC.GUARD, np.concatenate([kw, wk], axis=1).astype(NP_REAL))
             self.bend_step = ti.ndarray(VEC4, self.n_bends)  # _use_step
         self.stiff_bends = _nd(ti.i32, np.zeros(1, np.int32))
         if not self.gauss_seidel:  # a parallel backend: coloured sweeps
@@ -795,7 +799,7 @@ class XPBDSolver(ClothSolver):
             self.bends = _nd(ti.math.ivec4, np.zeros((1, 4), np.int32))
             self.kw = _nd(VEC4, np.zeros((1, 4), NP_REAL))
             self.bbeta = _nd(REAL, np.zeros(1, NP_REAL))
-            self.bend_kk = _nd(K.GUARD, np.zeros((1, 8), NP_REAL))
+            self.bend_kk = _nd(KC.GUARD, np.zeros((1, 8), NP_REAL))
             self.bend_step = _nd(VEC4, np.zeros((1, 4), NP_REAL))
             self.lam_b = ti.ndarray(VEC3, 1)
         if not self.n_pins:
@@ -877,7 +881,7 @@ class XPBDSolver(ClothSolver):
         P[K.P_L_TAG] = lc.grid_tag
         P[K.P_SHIFT : K.P_SHIFT + 3] = c.shift_np
         P[K.P_L_SHIFT : K.P_L_SHIFT + 3] = lc.shift_np
-        # The fold fields ride after the scalars (kernels.fold_near reads them at P_SIZE).
+        # The fold fields ride after the scalars (search_kernels.fold_near reads them at P_SIZE).
         P = np.concatenate([P, np.asarray(c.fold_np, NP_REAL)])
         Q = np.zeros(K.Q_SIZE, np.int32)
         Q[K.Q_N_SUB] = n_sub
@@ -950,7 +954,7 @@ class XPBDSolver(ClothSolver):
                 cell=1.0,
                 grid_tag=0,
                 shift_np=np.zeros(3),
-                tbox=ti.ndarray(K.GUARD, 1),
+                tbox=ti.ndarray(KC.GUARD, 1),
             )
         return self._dummy_collider
 
