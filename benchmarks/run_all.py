@@ -14,6 +14,7 @@ BENCHMARKS = [
     ("bench_body", False),
     ("bench_outfits", False),
     ("bench_sim", False),
+    ("bench_sweep_floor", False),
     ("bench_hard_cases", True),
     ("bench_dataset", True),
 ]

@@ -519,3 +519,61 @@ def test_the_gpu_run_keeps_its_order_skips_what_the_deadline_cannot_hold_and_pac
     assert machine["gpu"] == "Some GPU"
     with pytest.raises(SystemExit, match="--modes: unknown batches"):
         bench_gpu.run_all(tmp_path / "run2", None, ("cases", "batches"))
+
+
+def test_the_sweep_floor_times_the_products_sweep_its_loads_alone_and_a_disc_in_l1():
+    """benchmarks/bench_sweep_floor.py: its `product` kernel is the product's forward sweep
+    (the same floats as kernels.springs_gauss_seidel from the same state), its memory floor
+    moves nothing (every load kept, every store of zero), and its arithmetic floor's patch is
+    a disc of the cloth's springs, all ends within the disc, in an order where no two
+    consecutive springs share a vertex more often than the product's wavefront order lets
+    them."""
+    import numpy as np
+    import taichi as ti
+
+    from benchmarks import bench_sweep_floor as floor
+    from datagen.sim import kernels as K
+    from datagen.sim.effects import Effects
+    from datagen.sim.precision import NP_REAL
+    from datagen.sim.simulate import OVER_RELAXATION
+    from datagen.sim.solvers import SolverSettings, XPBDSolver
+
+    model = _study_tube()
+    solver = XPBDSolver(model, Effects(pins=True), SolverSettings(substeps=20, iterations=4))
+    h, omega = 1.0 / 30.0 / 20, OVER_RELAXATION["xpbd"]
+    rng = np.random.default_rng(5)
+    x0 = (model.x0 + rng.normal(scale=0.002, size=model.x0.shape)).astype(NP_REAL)
+    stretch = solver.sets["stretch"]
+    args = (stretch.springs, stretch.rest, stretch.limit, stretch.comp_t, stretch.comp_c,
+            stretch.beta, stretch.lam)
+
+    def state_after(sweep) -> tuple[np.ndarray, np.ndarray]:
+        solver.x.from_numpy(x0)
+        solver.xp.from_numpy(model.x0.astype(NP_REAL))
+        stretch.lam.from_numpy(np.zeros(stretch.count, NP_REAL))
+        sweep()
+        ti.sync()
+        return solver.x.to_numpy(), stretch.lam.to_numpy()
+
+    ours = state_after(lambda: floor.sweeps(2, solver.x, solver.xp, solver.w, *args, 1.0 / h,
+                                            omega))
+    product = state_after(lambda: [K.springs_gauss_seidel(solver.x, solver.xp, solver.w, *args,
+                                                          h, 0, omega) for _ in range(2)])
+    assert np.abs(ours[0] - x0).max() > 1e-5  # the sweeps did move the cloth
+    assert np.array_equal(ours[0], product[0]) and np.array_equal(ours[1], product[1])
+    touched = state_after(lambda: floor.touches(3, 0.0, solver.x, solver.xp, solver.w, *args))
+    assert np.array_equal(touched[0], x0) and not touched[1].any()
+
+    springs = stretch.springs.to_numpy()
+    disc = floor.patch_vertices(model.x0)
+    assert len(disc) == floor.PATCH_VERTICES
+    centre = model.x0[model.n_vertices // 2]
+    radius = np.linalg.norm(model.x0[disc] - centre, axis=1).max()
+    outside = np.setdiff1d(np.arange(model.n_vertices), disc)
+    assert (np.linalg.norm(model.x0[outside] - centre, axis=1) >= radius).all()
+    index = floor.patch_elements(springs, disc, model.n_vertices)
+    inside = np.isin(springs, disc).all(axis=1)
+    assert sorted(index) == sorted(np.flatnonzero(inside)) and len(index) > 100
+    patch = springs[index]
+    shared = [len(set(a) & set(b)) > 0 for a, b in zip(patch[:-1], patch[1:], strict=True)]
+    assert np.mean(shared) < 0.1
