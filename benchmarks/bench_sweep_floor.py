@@ -21,7 +21,9 @@ as one kernel that sweeps REPEATS times (no launch in the time):
 
 A sweep runs no faster than the larger floor, so `product / larger floor` near 1 says the sweep
 is at this machine's limit for its instructions, and only fewer instructions (SIMD across
-independent elements) or fewer sweeps would make it faster.
+independent elements) or fewer sweeps would make it faster. What the first would buy is timed
+for the springs in the same turns: the springs in colour order (no two of a colour sharing a
+vertex) one at a time, and LANES at a time with lane arithmetic (`lane_sweeps`).
 
     python -m benchmarks.bench_sweep_floor
 
@@ -40,14 +42,15 @@ import numpy as np
 import taichi as ti
 
 from benchmarks.common import write_section
+from datagen.sim import kernel_common as KC
 from datagen.sim import kernels as K
 from datagen.sim.effects import Effects
 from datagen.sim.fabrics import FABRICS
-from datagen.sim.kernel_common import F1, GUARD, I2, I4, V3, V4, V8
+from datagen.sim.kernel_common import F1, GUARD, I1, I2, I4, V3, V4, V8
 from datagen.sim.model import build_cloth_model
 from datagen.sim.precision import REAL, VEC3, VEC4
 from datagen.sim.simulate import OVER_RELAXATION
-from datagen.sim.solvers import SolverSettings, XPBDSolver, wavefront_order
+from datagen.sim.solvers import SolverSettings, XPBDSolver, colour_order, wavefront_order
 from datagen.study.scenes import FPS, build_scene
 
 # (No `from __future__ import annotations`: Taichi reads the kernels' annotations.)
@@ -122,6 +125,87 @@ def bend_touches(reps: ti.i32, zero: REAL, x: V3, xp: V3, bends: I4, kk: V8, bst
                 x[q[c]] += zero * d
 
 
+LANES = 8  # springs a lane sweep updates at once (AVX2: eight float32 lanes)
+
+
+@ti.kernel
+def lane_sweeps(reps: ti.i32, x: V3, xp: V3, w: F1, springs: I2, rest: F1, limit: F1,
+                comp_t: F1, comp_c: F1, beta: F1, lam: F1, groups: I1, inv_h: REAL,
+                omega: REAL):
+    """`reps` sweeps of the product's spring update (kernels.spring_delta's arithmetic) over
+    `groups`: LANES springs at a time, indices into the set's arrays (-1: an empty lane), no two
+    of a group sharing a vertex (a colour's springs), so the group's springs are gathered into
+    lanes, updated with lane arithmetic (selects for the update's branches) and scattered back.
+    Each spring's floats are its scalar update's but for the compiler's contractions; the
+    sweep's order is the colours', not the product's."""
+    ti.loop_config(serialize=True)
+    for _ in range(reps):
+        for g in range(groups.shape[0] // LANES):
+            e = ti.Vector([0] * LANES, ti.i32)
+            d = ti.Matrix([[0.0] * LANES] * 3, REAL)
+            rel = ti.Matrix([[0.0] * LANES] * 3, REAL)
+            wi = ti.Vector([0.0] * LANES, REAL)
+            wj = ti.Vector([0.0] * LANES, REAL)
+            r0 = ti.Vector([1.0] * LANES, REAL)
+            lim = ti.Vector([1.0] * LANES, REAL)
+            ct = ti.Vector([0.0] * LANES, REAL)
+            cc = ti.Vector([0.0] * LANES, REAL)
+            be = ti.Vector([0.0] * LANES, REAL)
+            la = ti.Vector([0.0] * LANES, REAL)
+            valid = ti.Vector([0.0] * LANES, REAL)
+            for q in ti.static(range(LANES)):
+                # Branch-free: an empty lane reads spring 0 and is masked (its weights zero).
+                e[q] = ti.max(groups[g * LANES + q], 0)
+                valid[q] = ti.select(groups[g * LANES + q] >= 0, 1.0, 0.0)
+                i = springs[e[q]][0]
+                j = springs[e[q]][1]
+                for c in ti.static(range(3)):
+                    d[c, q] = x[j][c] - x[i][c]
+                    rel[c, q] = (x[j][c] - xp[j][c]) - (x[i][c] - xp[i][c])
+                wi[q] = w[i] * valid[q]
+                wj[q] = w[j] * valid[q]
+                r0[q] = rest[e[q]]
+                lim[q] = limit[e[q]]
+                ct[q] = comp_t[e[q]]
+                cc[q] = comp_c[e[q]]
+                be[q] = beta[e[q]]
+                la[q] = lam[e[q]]
+            wsum = wi + wj
+            length = ti.sqrt(d[0, :] * d[0, :] + d[1, :] * d[1, :] + d[2, :] * d[2, :])
+            ok = (wsum > 0.0) & (length > 1e-9)
+            inv_len = 1.0 / ti.select(ok, length, 1.0)
+            rate = (d[0, :] * rel[0, :] + d[1, :] * rel[1, :] + d[2, :] * rel[2, :]) * inv_len
+            c_len = length - r0
+            alpha = ti.select(c_len < 0.0, cc, ct) * inv_h * inv_h
+            gamma = be * inv_h
+            den = ti.select(ok, (1.0 + gamma) * wsum + alpha, 1.0)
+            dl = ti.select(ok, omega * (-c_len - alpha * la - gamma * rate) / den, 0.0)
+            after = length + wsum * dl
+            move = dl + ti.select(after > lim, (lim - after) / ti.select(ok, wsum, 1.0), 0.0)
+            step = move * inv_len
+            for q in ti.static(range(LANES)):
+                # An empty lane's weights are zero, so it moves nothing and adds nothing.
+                i = springs[e[q]][0]
+                j = springs[e[q]][1]
+                lam[e[q]] += dl[q]
+                n = KC.vec3(d[0, q], d[1, q], d[2, q]) * step[q]
+                x[i] -= wi[q] * n
+                x[j] += wj[q] * n
+
+
+def lane_groups(springs: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """The set's springs in colour order (solvers.colour_order) and their lane groups: each
+    colour's springs LANES at a time, a colour's last group padded with -1 (indices into the
+    colour-ordered arrays)."""
+    order, ptr = colour_order(springs, n_vertices)
+    groups = []
+    for c in range(len(ptr) - 1):
+        members = np.arange(ptr[c], ptr[c + 1])
+        pad = -len(members) % LANES
+        groups.append(np.concatenate([members, np.full(pad, -1)]))
+    return order, np.concatenate(groups).astype(np.int32) if groups else np.zeros(0, np.int32)
+
+
 def patch_vertices(x: np.ndarray) -> np.ndarray:
     """The PATCH_VERTICES vertices nearest the cloth's middle vertex (by index): a disc of
     cloth, whose springs are a small copy of the whole mesh's."""
@@ -192,6 +276,13 @@ def measure(scene_name: str, fabric: str, resolution: str) -> list[dict]:
                               + tuple(_subset(a, index, REAL) for a in per_spring))
     n, n_patch = (sum(s[0].shape[0] for s in ss) for ss in (sets, patch_sets))
     patch_reps = max(1, REPEATS * n // max(1, n_patch))
+    coloured, lanes_used = [], 0
+    for springs, *per_spring in sets:
+        order, groups = lane_groups(springs.to_numpy(), model.n_vertices)
+        coloured.append(((_subset(springs, order, ti.math.ivec2),)
+                         + tuple(_subset(a, order, REAL) for a in per_spring),
+                         _nd(ti.i32, groups)))
+        lanes_used += len(groups)
     rows.append({"scene": label, "fabric": fabric, "elements": "springs", "count": n, **_timed({
         "product": (lambda: [sweeps(REPEATS, x, xp, w, *a, 1.0 / h, omega) for a in sets],
                     n * REPEATS),
@@ -199,7 +290,12 @@ def measure(scene_name: str, fabric: str, resolution: str) -> list[dict]:
                          n * REPEATS),
         "arithmetic floor": (lambda: [sweeps(patch_reps, x, xp, w, *a, 1.0 / h, omega)
                                       for a in patch_sets], n_patch * patch_reps),
-    })})
+        "colour order": (lambda: [sweeps(REPEATS, x, xp, w, *a, 1.0 / h, omega)
+                                  for a, _ in coloured], n * REPEATS),
+        f"colour order, {LANES} lanes": (
+            lambda: [lane_sweeps(REPEATS, x, xp, w, *a, g, 1.0 / h, omega) for a, g in coloured],
+            n * REPEATS),
+    }), "lanes used": n / max(1, lanes_used)})
 
     bends = (solver.bends, solver.bend_kk, solver.bend_step, solver.lam_b)
     n = solver.n_bends
@@ -244,6 +340,26 @@ def report(rows: list[dict]) -> str:
             f"| {r['scene']} ({r['fabric']}) | {r['elements']} | {r['count']} "
             f"| {' | '.join(cells)} | {r['product'] / floor:.2f}x "
             f"| {r['product'] * r['count'] * 1e-6:.2f} |")
+    lanes = f"colour order, {LANES} lanes"
+    lines += [
+        "",
+        f"What fewer instructions would buy: the springs swept in colour order (another "
+        f"Gauss-Seidel order, so another trajectory), one spring at a time and {LANES} at a "
+        f"time (`lane_sweeps`: a colour's springs gathered into lanes, updated with lane "
+        f"arithmetic, scattered back; the same floats as one at a time within rounding), timed "
+        f"in turns with the settings above.",
+        "",
+        f"| scene | springs | colour order ns | {LANES} lanes ns | lanes used "
+        f"| {LANES} lanes against the product |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if lanes not in r:
+            continue
+        sp = r["spread"]
+        cells = [f"{r[k]:.1f} ({sp[k][0]:.1f}-{sp[k][1]:.1f})" for k in ("colour order", lanes)]
+        lines.append(f"| {r['scene']} ({r['fabric']}) | {r['count']} | {' | '.join(cells)} "
+                     f"| {100 * r['lanes used']:.1f} % | {r['product'] / r[lanes]:.2f}x |")
     return "\n".join(lines)
 
 

@@ -577,3 +577,50 @@ def test_the_sweep_floor_times_the_products_sweep_its_loads_alone_and_a_disc_in_
     patch = springs[index]
     shared = [len(set(a) & set(b)) > 0 for a, b in zip(patch[:-1], patch[1:], strict=True)]
     assert np.mean(shared) < 0.1
+
+
+def test_the_sweep_floors_lane_sweep_is_the_spring_update_eight_independent_springs_at_a_time():
+    """bench_sweep_floor.lane_sweeps: its groups hold each spring once, no two springs of a
+    group share a vertex, and its sweeps give the scalar update's positions and multipliers
+    in the same (colour) order within float32 rounding."""
+    import numpy as np
+    import taichi as ti
+
+    from benchmarks import bench_sweep_floor as floor
+    from datagen.sim.effects import Effects
+    from datagen.sim.precision import NP_REAL, REAL
+    from datagen.sim.simulate import OVER_RELAXATION
+    from datagen.sim.solvers import SolverSettings, XPBDSolver
+
+    model = _study_tube()
+    solver = XPBDSolver(model, Effects(pins=True), SolverSettings(substeps=20, iterations=4))
+    h, omega = 1.0 / 30.0 / 20, OVER_RELAXATION["xpbd"]
+    stretch = solver.sets["stretch"]
+    springs = stretch.springs.to_numpy()
+    order, groups = floor.lane_groups(springs, model.n_vertices)
+    assert len(groups) % floor.LANES == 0
+    assert sorted(groups[groups >= 0]) == list(range(len(springs)))
+    for group in groups.reshape(-1, floor.LANES):
+        ends = springs[order[group[group >= 0]]].ravel()
+        assert len(set(ends)) == len(ends)
+    arrays = (floor._subset(stretch.springs, order, ti.math.ivec2),) + tuple(
+        floor._subset(a, order, REAL) for a in (stretch.rest, stretch.limit, stretch.comp_t,
+                                                  stretch.comp_c, stretch.beta, stretch.lam))
+    rng = np.random.default_rng(5)
+    x0 = (model.x0 + rng.normal(scale=0.002, size=model.x0.shape)).astype(NP_REAL)
+
+    def state_after(sweep) -> tuple[np.ndarray, np.ndarray]:
+        solver.x.from_numpy(x0)
+        solver.xp.from_numpy(model.x0.astype(NP_REAL))
+        arrays[-1].from_numpy(np.zeros(len(springs), NP_REAL))
+        sweep()
+        ti.sync()
+        return solver.x.to_numpy(), arrays[-1].to_numpy()
+
+    scalar = state_after(lambda: floor.sweeps(3, solver.x, solver.xp, solver.w, *arrays,
+                                              1.0 / h, omega))
+    lanes = state_after(lambda: floor.lane_sweeps(3, solver.x, solver.xp, solver.w, *arrays,
+                                                  floor._nd(ti.i32, groups), 1.0 / h, omega))
+    assert np.abs(scalar[0] - x0).max() > 1e-3  # the sweeps did move the cloth
+    assert np.abs(lanes[0] - scalar[0]).max() < 1e-6
+    assert np.abs(lanes[1] - scalar[1]).max() < 1e-4 * np.abs(scalar[1]).max()
