@@ -60,7 +60,7 @@ SCENES = [("sheet_sphere", "cotton", "10k"), ("tube_cylinder", "cotton", "5k"),
 SUBSTEPS, ITERATIONS = 20, 4  # the `default` preset: the step the sweeps run at
 SPRING_SWEEPS_A_FRAME = SUBSTEPS * ITERATIONS  # every spring set, each iteration of each substep
 REPEATS = 200  # sweeps a timed kernel runs
-ROUNDS = 9  # the three settings timed in turns this many times; the median is reported
+ROUNDS = 9  # the settings timed in turns this many times; the median is reported
 PATCH_VERTICES = 200  # the arithmetic floor's patch: its positions and springs fit in L1
 
 
@@ -319,7 +319,7 @@ def report(rows: list[dict]) -> str:
     lines = [
         f"Each scene's springs (the xpbd solver's spring sets) and bending stencils, in the "
         f"solver's sweep order, one thread, {REPEATS} forward sweeps a timed kernel at the "
-        f"`default` step ({SUBSTEPS}x{ITERATIONS}), the three settings timed in turns {ROUNDS} "
+        f"`default` step ({SUBSTEPS}x{ITERATIONS}), every setting timed in turns {ROUNDS} "
         f"times: median ns an element (range in brackets). `memory floor`: the same loads and "
         f"stores without the update's arithmetic; `arithmetic floor`: the same update over "
         f"the elements of a disc of {PATCH_VERTICES} vertices, all in the L1 cache. 'ms a "
