@@ -50,7 +50,13 @@ from datagen.sim.kernel_common import F1, GUARD, I1, I2, I4, V3, V4, V8
 from datagen.sim.model import build_cloth_model
 from datagen.sim.precision import REAL, VEC3, VEC4
 from datagen.sim.simulate import OVER_RELAXATION
-from datagen.sim.solvers import SolverSettings, XPBDSolver, colour_order, wavefront_order
+from datagen.sim.solvers import (
+    SolverSettings,
+    XPBDSolver,
+    _nd,
+    colour_order,
+    wavefront_order,
+)
 from datagen.study.scenes import FPS, build_scene
 
 # (No `from __future__ import annotations`: Taichi reads the kernels' annotations.)
@@ -225,14 +231,15 @@ def patch_elements(elements: np.ndarray, vertices: np.ndarray, n_vertices: int) 
     return inside[wavefront_order(elements[inside], n_vertices)]
 
 
-def _nd(dtype, data: np.ndarray):
-    out = ti.ndarray(dtype, data.shape[0])
-    out.from_numpy(data)
-    return out
-
-
 def _subset(a, index: np.ndarray, dtype):
     return _nd(dtype, a.to_numpy()[index])
+
+
+def _spring_subset(arrays: tuple, index: np.ndarray) -> tuple:
+    """A spring set's arrays (springs, then the per-spring values) at `index`, in its order."""
+    springs, *per_spring = arrays
+    return (_subset(springs, index, ti.math.ivec2),) + tuple(_subset(a, index, REAL)
+                                                            for a in per_spring)
 
 
 def _timed(settings: dict[str, tuple[Callable[[], None], int]]) -> dict:
@@ -260,6 +267,7 @@ def measure(scene_name: str, fabric: str, resolution: str) -> list[dict]:
                         SolverSettings(substeps=SUBSTEPS, iterations=ITERATIONS))
     h = 1.0 / FPS / SUBSTEPS
     solver._use_step(h)  # the bends' terms for this step
+    inv_h = 1.0 / h
     omega = OVER_RELAXATION["xpbd"]  # the forward sweeps' over-relaxation (the default)
     x, xp, w = solver.x, solver.xp, solver.w
     disc = patch_vertices(x.to_numpy())
@@ -269,46 +277,43 @@ def measure(scene_name: str, fabric: str, resolution: str) -> list[dict]:
     sets = [(s.springs, s.rest, s.limit, s.comp_t, s.comp_c, s.beta, s.lam)
             for s in solver.sets.values()]
     patch_sets = []
-    for springs, *per_spring in sets:
-        index = patch_elements(springs.to_numpy(), disc, model.n_vertices)
+    for arrays in sets:
+        index = patch_elements(arrays[0].to_numpy(), disc, model.n_vertices)
         if len(index):
-            patch_sets.append((_subset(springs, index, ti.math.ivec2),)
-                              + tuple(_subset(a, index, REAL) for a in per_spring))
+            patch_sets.append(_spring_subset(arrays, index))
     n, n_patch = (sum(s[0].shape[0] for s in ss) for ss in (sets, patch_sets))
     patch_reps = max(1, REPEATS * n // max(1, n_patch))
-    coloured, lanes_used = [], 0
-    for springs, *per_spring in sets:
-        order, groups = lane_groups(springs.to_numpy(), model.n_vertices)
-        coloured.append(((_subset(springs, order, ti.math.ivec2),)
-                         + tuple(_subset(a, order, REAL) for a in per_spring),
-                         _nd(ti.i32, groups)))
-        lanes_used += len(groups)
+    coloured, lane_slots = [], 0
+    for arrays in sets:
+        order, groups = lane_groups(arrays[0].to_numpy(), model.n_vertices)
+        coloured.append((_spring_subset(arrays, order), _nd(ti.i32, groups)))
+        lane_slots += len(groups)
     rows.append({"scene": label, "fabric": fabric, "elements": "springs", "count": n, **_timed({
-        "product": (lambda: [sweeps(REPEATS, x, xp, w, *a, 1.0 / h, omega) for a in sets],
+        "product": (lambda: [sweeps(REPEATS, x, xp, w, *a, inv_h, omega) for a in sets],
                     n * REPEATS),
         "memory floor": (lambda: [touches(REPEATS, 0.0, x, xp, w, *a) for a in sets],
                          n * REPEATS),
-        "arithmetic floor": (lambda: [sweeps(patch_reps, x, xp, w, *a, 1.0 / h, omega)
+        "arithmetic floor": (lambda: [sweeps(patch_reps, x, xp, w, *a, inv_h, omega)
                                       for a in patch_sets], n_patch * patch_reps),
-        "colour order": (lambda: [sweeps(REPEATS, x, xp, w, *a, 1.0 / h, omega)
+        "colour order": (lambda: [sweeps(REPEATS, x, xp, w, *a, inv_h, omega)
                                   for a, _ in coloured], n * REPEATS),
         f"colour order, {LANES} lanes": (
-            lambda: [lane_sweeps(REPEATS, x, xp, w, *a, g, 1.0 / h, omega) for a, g in coloured],
+            lambda: [lane_sweeps(REPEATS, x, xp, w, *a, g, inv_h, omega) for a, g in coloured],
             n * REPEATS),
-    }), "lanes used": n / max(1, lanes_used)})
+    }), "lanes used": n / max(1, lane_slots)})
 
     bends = (solver.bends, solver.bend_kk, solver.bend_step, solver.lam_b)
     n = solver.n_bends
     index = patch_elements(solver.bends_np, disc, model.n_vertices)
     patch = (_subset(solver.bends, index, ti.math.ivec4), _subset(solver.bend_kk, index, GUARD),
              _subset(solver.bend_step, index, VEC4), _subset(solver.lam_b, index, VEC3))
-    patch_reps = max(1, REPEATS * n // max(1, len(index)))
+    bend_patch_reps = max(1, REPEATS * n // max(1, len(index)))
     rows.append({"scene": label, "fabric": fabric, "elements": "bending stencils", "count": n,
                  **_timed({
         "product": (lambda: bend_sweeps(REPEATS, x, xp, *bends, omega), n * REPEATS),
         "memory floor": (lambda: bend_touches(REPEATS, 0.0, x, xp, *bends), n * REPEATS),
-        "arithmetic floor": (lambda: bend_sweeps(patch_reps, x, xp, *patch, omega),
-                             len(index) * patch_reps),
+        "arithmetic floor": (lambda: bend_sweeps(bend_patch_reps, x, xp, *patch, omega),
+                             len(index) * bend_patch_reps),
     })})
     if not np.isfinite(x.to_numpy()).all():
         raise RuntimeError(f"{scene_name}: the timed sweeps left non-finite positions")

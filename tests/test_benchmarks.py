@@ -588,7 +588,7 @@ def test_the_sweep_floors_lane_sweep_is_the_spring_update_eight_independent_spri
 
     from benchmarks import bench_sweep_floor as floor
     from datagen.sim.effects import Effects
-    from datagen.sim.precision import NP_REAL, REAL
+    from datagen.sim.precision import NP_REAL
     from datagen.sim.simulate import OVER_RELAXATION
     from datagen.sim.solvers import SolverSettings, XPBDSolver
 
@@ -603,9 +603,8 @@ def test_the_sweep_floors_lane_sweep_is_the_spring_update_eight_independent_spri
     for group in groups.reshape(-1, floor.LANES):
         ends = springs[order[group[group >= 0]]].ravel()
         assert len(set(ends)) == len(ends)
-    arrays = (floor._subset(stretch.springs, order, ti.math.ivec2),) + tuple(
-        floor._subset(a, order, REAL) for a in (stretch.rest, stretch.limit, stretch.comp_t,
-                                                  stretch.comp_c, stretch.beta, stretch.lam))
+    arrays = floor._spring_subset((stretch.springs, stretch.rest, stretch.limit, stretch.comp_t,
+                                   stretch.comp_c, stretch.beta, stretch.lam), order)
     rng = np.random.default_rng(5)
     x0 = (model.x0 + rng.normal(scale=0.002, size=model.x0.shape)).astype(NP_REAL)
 
