@@ -1383,6 +1383,51 @@ def test_the_depth_search_finds_the_nearest_triangle_whatever_its_hint(hashed, m
     check_against_trimesh(v2, collider.signed_distance(points, hint=hint))
 
 
+def test_a_shorter_depth_reach_keeps_every_side_and_depth_verdict():
+    """The depth QA asks only which side of the body a vertex is on and whether it is deeper
+    than its thickness, so on a closed body it searches just past the thickest fabric
+    (`within`) instead of a whole cell. Within that reach the distances are the full search's;
+    beyond it they read the reach, on the side trimesh's ray test gives; and every verdict the
+    QA draws (inside, deeper than 3, 4 or 5 mm) is the full search's. The reach itself must
+    exceed the thickness: float32 rounds 5 mm down, so a vertex a centimetre deep measured as
+    a bare 5 mm reach would not read deeper than denim's 5 mm."""
+    import trimesh
+
+    from datagen.sim.simulate import DEPTH_QA_MARGIN, depth_qa_reach
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.25)
+    verts, faces = np.asarray(sphere.vertices, np.float64), np.asarray(sphere.faces)
+    collider = BodyCollider(faces, np.ones(len(faces), bool), len(verts))
+    collider.set_frames(verts, verts)
+    rng = np.random.default_rng(11)
+    direction = rng.normal(size=(5000, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    points = direction * rng.uniform(0.21, 0.29, size=(5000, 1))
+    thickness = np.full(len(points), 0.005)  # denim's
+    assert collider.closed
+    reach = depth_qa_reach(thickness, collider.cell, closed=True)
+    assert reach == pytest.approx(0.005 + DEPTH_QA_MARGIN)
+    # Without a winding number to tell inside from outside, the QA keeps its whole cell.
+    assert depth_qa_reach(thickness, collider.cell, closed=False) == collider.cell
+    assert float(np.float32(0.005)) < 0.005  # why the margin
+    full = collider.signed_distance(points)
+    short = collider.signed_distance(points, within=reach)
+    _, distance, _ = trimesh.proximity.closest_point(sphere, points)
+    near = distance < reach - 1e-6
+    beyond = distance > reach + 1e-6
+    assert near.sum() > 200 and beyond.sum() > 3000
+    np.testing.assert_allclose(short[near], full[near], atol=1e-6)
+    inside = sphere.contains(points)
+    np.testing.assert_array_equal(short[beyond & ~inside], np.float32(reach))
+    np.testing.assert_array_equal(short[beyond & inside], -np.float32(reach))
+    for depth in (0.0, 0.003, 0.004, 0.005):
+        np.testing.assert_array_equal(short < -depth, full < -depth)
+    assert (short[beyond & inside] < -thickness[beyond & inside]).all()
+    for bad in (0.0, collider.cell * 1.5):
+        with pytest.raises(ValueError, match="within must be in"):
+            collider.signed_distance(points, within=bad)
+
+
 def test_the_depth_qa_sees_cloth_deeper_than_a_cell_inside():
     """Cloth more than a cell (25 mm) inside the body has no body triangle within the search's
     reach, like cloth a cell away outside it. The QA tells them apart by the winding number of

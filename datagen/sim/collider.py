@@ -424,15 +424,22 @@ class BodyCollider:
         # grid_fill used counts as cursors; they must be zero for the next frame's counting.
         grid.counts.fill(0)
 
-    def signed_distance(self, x: np.ndarray | ti.Ndarray,
-                        hint: ti.Ndarray | None = None) -> np.ndarray:
+    def signed_distance(self, x: np.ndarray | ti.Ndarray, hint: ti.Ndarray | None = None,
+                        within: float | None = None) -> np.ndarray:
         """Signed distance of points (N, 3) to the collider surface at the end of the current
-        frame (positive outside; `cell` or more where no triangle is within a grid cell), each
-        by its closest triangle. `x` may be a Taichi array of vectors (the solver's positions,
-        read in place: a copy in costs about 0.2 ms). `hint` (a Taichi i32 array of N
-        triangles, or -1, such as the solver's tracked ones) and the closest triangles of the
-        last call with as many points only speed the search up
-        (depth_kernels.grid_signed_distance)."""
+        frame (positive outside), each by its closest triangle within `within` (default and
+        at most a grid cell): beyond it, `within` outside and `-within` inside (by the winding
+        of a closed collider). A caller that needs only which side points are on and whether
+        they are deeper than some depth passes that depth: the search then scans the one to
+        eight cells around a point instead of 27 (the depth QA's kernel: 9 -> 4.3 ms a frame on
+        the walking t-shirt). `x` may be a Taichi array of vectors (the solver's positions, read in
+        place: a copy in costs about 0.2 ms). `hint` (a Taichi i32 array of N triangles, or
+        -1, such as the solver's tracked ones) and the closest triangles of the last call with
+        as many points only speed the search up (depth_kernels.grid_signed_distance)."""
+        reach = self.cell if within is None else float(within)
+        if not 0.0 < reach <= self.cell:
+            raise ValueError(f"signed_distance: within must be in (0, {self.cell:g}] m (the "
+                             f"grid's cell), got {within!r}")
         n = x.shape[0]
         if getattr(self, "_sd_n", None) != n:
             self._sd_n = n
@@ -452,7 +459,7 @@ class BodyCollider:
         DK.grid_signed_distance(points, self._sd_last if hint is None else hint,
                                self._sd_last, self.b1, self.n1, self.faces, self.mask,
                                self.origin, self.inv_cell, self.dims, self.shift,
-                               grid.starts, grid.items, grid.tbox, float(self.cell),
+                               grid.starts, grid.items, grid.tbox, reach,
                                self._sd_out, self.closed, columns.starts, columns.items,
                                origin, inv_column, dims, self._outward, backend.serial())
         return self._sd_out.to_numpy().astype(np.float64)

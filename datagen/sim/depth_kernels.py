@@ -1,6 +1,6 @@
 """The depth QA: each cloth vertex's signed distance to the closed body surface at a frame's end,
-from the grid's closest triangle within a cell, and beyond a cell inside or outside by the
-winding of a ray through a column grid."""
+from the grid's closest triangle within a reach of at most a cell, and beyond it inside or
+outside by the winding of a ray through a column grid."""
 
 import taichi as ti
 
@@ -191,12 +191,13 @@ def grid_signed_distance(x: V3, hint: I1, last: I1, b: V3, n: V3, faces: I3, mas
                          col_inv_cell: REAL, col_dims: ti.math.ivec3, outward: ti.i32,
                          serialize: ti.template()):
     """Signed distance of each point to its closest collider triangle at the end of the frame
-    (`b`, vertex normals `n` for the sign), searching the 27 grid cells around it. Where no
-    triangle is within `far` (one cell): `far`, or `-far` inside a `closed` collider (the
-    winding number of its whole mesh, `outward` 1 or -1 as its triangles face, through the
-    column grid `col_*` of column_grid_build). The grid (`starts`, `items`, `tbox`) must file each
-    triangle in the cells of its box at `b`, in the grid's coordinates (b - shift: the frame's
-    end in coordinates that move with the body's mean motion, count_triangle): BodyCollider
+    (`b`, vertex normals `n` for the sign), searching the grid cells within `far` of it (of
+    the 27 around it). Where no triangle is within `far` (at most one cell): `far`, or `-far`
+    inside a `closed` collider (the winding number of its whole mesh, `outward` 1 or -1 as its
+    triangles face, through the column grid `col_*` of column_grid_build). The grid (`starts`,
+    `items`, `tbox`) must file each triangle in the cells of its box at `b`, in the grid's
+    coordinates (b - shift: the frame's end in coordinates that move with the body's mean
+    motion, count_triangle): BodyCollider
     passes its grid of the end boxes, which fills about half the cells that the solver's boxes
     swept over the frame do. Two hints per point (a triangle, or -1) only start the search:
     `hint` (the depth QA passes the solver's tracked triangles) and `last`, the closest triangle
@@ -252,7 +253,7 @@ def grid_signed_distance(x: V3, hint: I1, last: I1, b: V3, n: V3, faces: I3, mas
         last[i] = best_t
         d = far
         if best_t < 0:
-            # Nothing filed within a cell: a cell or more from the surface, on the side the
+            # Nothing filed within `far`: that far or more from the surface, on the side the
             # ray's crossings give (a collider that is not closed has no inside to count).
             if ti.static(closed):
                 if outward * winding_along_ray(p, b, faces, col_starts, col_items, col_origin,

@@ -103,6 +103,20 @@ SPEED_LIMIT = 15.0  # m/s: a cloth vertex faster than this and 3x the body's fas
 # vertices at 5-10 m/s, which the absolute guards let through.
 ENERGY_SLACK = 2.0
 ENERGY_FLOOR_SPEED = 0.1  # m/s
+# The depth QA's search reaches this far past the thickest fabric: a vertex beyond its reach,
+# measured as the reach itself in the kernel's float32, must still read deeper than any
+# vertex's thickness.
+DEPTH_QA_MARGIN = 1e-3  # m
+
+
+def depth_qa_reach(thickness: np.ndarray, cell: float, closed: bool) -> float:
+    """How far the depth QA searches for each vertex's closest body triangle: just past the
+    thickest fabric (DEPTH_QA_MARGIN) on a closed collider, whose winding number tells inside
+    from outside beyond the reach; a whole grid cell on one that is not closed, which reads
+    everything beyond the reach as outside."""
+    if not closed:
+        return cell
+    return min(float(np.max(thickness)) + DEPTH_QA_MARGIN, cell)
 
 
 def output_fps(body: BodySequence | ColliderTrack | None) -> float:
@@ -540,6 +554,11 @@ class _Simulation:
             self.mask = np.asarray(body.face_mask, dtype=bool)
             self.collider = BodyCollider(self.faces, self.mask, body.vertices.shape[1],
                                          face_parts=body.face_parts)
+            # The depth QA asks only which side of the body each vertex is on and whether it
+            # is deeper than its thickness, so its search reaches just past the thickest
+            # fabric (collider.signed_distance's `within`).
+            self._depth_reach = depth_qa_reach(self.model.thickness, self.collider.cell,
+                                               self.collider.closed)
         else:
             self.collider = None
         self.pins = None
@@ -895,7 +914,8 @@ class _Simulation:
                 self.collider.set_frames(b, b)
             # The solver's tracked triangles only bound the search (it finds the nearest).
             # Read in place: the solver holds this frame's end (_advance copied a retry's in).
-            sd = self.collider.signed_distance(self.solver.x, hint=self.solver.tri)
+            sd = self.collider.signed_distance(self.solver.x, hint=self.solver.tri,
+                                               within=self._depth_reach)
         strain = self._strain(x)
         flags = None if sd is None else (sd < 0.0, sd < -self.model.thickness)
         qa_rows.append([_qa(self.model, p, v, flags, strain) for p in self.parts])
