@@ -190,24 +190,22 @@ def grid_signed_distance(x: V3, hint: I1, last: I1, b: V3, n: V3, faces: I3, mas
                          closed: ti.template(), col_starts: I1, col_items: I1, col_origin: vec3,
                          col_inv_cell: REAL, col_dims: ti.math.ivec3, outward: ti.i32,
                          serialize: ti.template()):
-    """Signed distance of each point to its closest collider triangle at the end of the frame
-    (`b`, vertex normals `n` for the sign), searching the grid cells within `far` of it (of
-    the 27 around it). Where no triangle is within `far` (at most one cell): `far`, or `-far`
-    inside a `closed` collider (the winding number of its whole mesh, `outward` 1 or -1 as its
-    triangles face, through the column grid `col_*` of column_grid_build). The grid (`starts`,
-    `items`, `tbox`) must file each triangle in the cells of its box at `b`, in the grid's
-    coordinates (b - shift: the frame's end in coordinates that move with the body's mean
-    motion, count_triangle): BodyCollider
-    passes its grid of the end boxes, which fills about half the cells that the solver's boxes
-    swept over the frame do. Two hints per point (a triangle, or -1) only start the search:
-    `hint` (the depth QA passes the solver's tracked triangles) and `last`, the closest triangle
-    of the previous call, which the call then overwrites (the cloth that the solver does not
-    track, within a cell of the body, moves less than a cell a frame). The nearer one bounds the
-    search, so that a point a few millimetres from the body scans the one to four cells within
-    that distance instead of 27: a third of the time on a walking t-shirt and half on a draped
-    sheet. A hint that is not a filed triangle (`mask`) is ignored, and the result does not
-    depend on the hints, except between equally near triangles. `serialize` on serial backends
-    (see copy_in)."""
+    """Signed distance of each point to its closest collider triangle at the end of the frame (`b`,
+    vertex normals `n` for the sign), searching the grid cells within `far` of it (of the 27 around
+    it). Where no triangle is within `far` (at most one cell): `far`, or `-far` inside a `closed`
+    collider (the winding number of its whole mesh, `outward` 1 or -1 as its triangles face, through
+    the column grid `col_*` of column_grid_build). The grid (`starts`, `items`, `tbox`) must file
+    each triangle in the cells of its box at `b`, in the grid's coordinates (b - shift: the frame's
+    end in coordinates that move with the body's mean motion, count_triangle): BodyCollider passes
+    its grid of the end boxes, which fills about half the cells that the solver's boxes swept over
+    the frame do. Two hints per point (a triangle, or -1) only start the search: `hint` (the depth
+    QA passes the solver's tracked triangles) and `last`, the closest triangle of the previous call,
+    which the call then overwrites (the cloth that the solver does not track, within a cell of the
+    body, moves less than a cell a frame). The nearer one bounds the search, so that a point a few
+    millimetres from the body scans the one to four cells within that distance instead of 27: a
+    third of the time on a walking t-shirt and half on a draped sheet. A hint that is not a filed
+    triangle (`mask`) is ignored, and the result does not depend on the hints, except between
+    equally near triangles. `serialize` on serial backends (see copy_in)."""
     ti.loop_config(serialize=serialize)
     for i in range(x.shape[0]):
         p = x[i]
