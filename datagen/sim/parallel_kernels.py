@@ -20,7 +20,7 @@ not by the device, and most substeps stop after the first sweep.
 import taichi as ti
 
 from datagen.sim.contact_kernels import collide_one, vertex_normal_finish_one
-from datagen.sim.grid_kernels import hash_cell, sort_cells
+from datagen.sim.grid_kernels import sort_cells
 from datagen.sim.kernel_common import F1, I1, I2, I3, I4, V3, V4, V8, lerp3, vec3
 from datagen.sim.kernels import (
     bend_force,
@@ -33,7 +33,7 @@ from datagen.sim.kernels import (
     spring_gs_one,
 )
 from datagen.sim.precision import REAL, VEC4
-from datagen.sim.self_collision_kernels import self_cell, self_pair_target
+from datagen.sim.self_collision_kernels import self_cell, self_pair_scan
 
 # -- the xpbd substep in few launches ------------------------------------------------------------
 # A parallel backend pays for each launch from Python whatever the work (a GPU: 6-12 us on the
@@ -211,39 +211,6 @@ def collide_moved(
                             friction, recover, release, contact_n, contact_v, h, False)
 
 
-@ti.func
-def self_push(i: ti.i32, x: V3, xp: V3, w: F1, owner: I1, rest: V3, starts: I1, items: I1,
-              inv_cell: REAL, mask: ti.i32, radius: REAL, min_rest: REAL,
-              recover: REAL) -> vec3:
-    """Vertex i's share of pushing it and every nearby vertex of its garment apart to `radius`
-    (self_collision_kernels.self_collide_one, seen from i's side and reading positions as they
-    are), averaged over the pairs it is in."""
-    xi = x[i]
-    oi = owner[i]
-    r2 = radius * radius
-    lo = ti.cast(ti.floor((xi - radius) * inv_cell), ti.i32)
-    total = vec3(0.0)
-    pairs = 0
-    for nb in range(8):
-        c = hash_cell(lo + ti.math.ivec3(nb // 4, (nb // 2) % 2, nb % 2), mask)
-        for q in range(starts[c], starts[c + 1]):
-            j = items[q]
-            if j != i:
-                d = x[j] - xi
-                d2 = d.norm_sqr()
-                if d2 < r2 and d2 > 1e-18 and owner[j] == oi:
-                    wsum = w[i] + w[j]
-                    if wsum > 0.0 and (rest[j] - rest[i]).norm() > min_rest:
-                        dist = ti.sqrt(d2)
-                        target = self_pair_target(xp[j] - xp[i], radius, recover)
-                        if dist < target:
-                            total -= w[i] * (target - dist) / (dist * wsum) * d
-                            pairs += 1
-    if pairs > 1:
-        total /= pairs
-    return total
-
-
 # Cells per block of the hashed grid's prefix sum (self_collide_parallel): each block is summed
 # by one thread, then the blocks' totals by one (a few hundred steps each instead of one thread
 # walking every cell).
@@ -258,8 +225,8 @@ def self_collide_parallel(x: V3, xp: V3, w: F1, owner: I1, rest: V3, counts: I1,
     parallel: counts by atomic adds, a blocked prefix sum (`scan`: one entry per SCAN_BLOCK cells,
     and one), the vertices filed by atomic cursors and each cell's list then sorted by index, so the
     grid and every sum below are the same on any number of threads. Then each vertex's push
-    (self_push) from the positions as they are, and all pushes at once (Jacobi with averaging: a
-    vertex pressed by a whole layer moves once, not once per neighbour)."""
+    (self_pair_scan) from the positions as they are, and all pushes at once (Jacobi with
+    averaging: a vertex pressed by a whole layer moves once, not once per neighbour)."""
     n_cells = mask + 1
     for c in range(n_cells):
         counts[c] = 0
@@ -283,8 +250,8 @@ def self_collide_parallel(x: V3, xp: V3, w: F1, owner: I1, rest: V3, counts: I1,
         items[starts[c] + ti.atomic_add(counts[c], 1)] = i
     sort_cells(starts, items, n_cells)
     for i in x:
-        push[i] = self_push(i, x, xp, w, owner, rest, starts, items, inv_cell, mask, radius,
-                            min_rest, recover)
+        push[i] = self_pair_scan(i, x, xp, w, owner, rest, starts, items, inv_cell, mask,
+                                 radius, min_rest, recover, False)
     for i in x:
         x[i] += push[i]
 
