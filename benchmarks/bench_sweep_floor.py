@@ -20,10 +20,14 @@ as one kernel that sweeps REPEATS times (no launch in the time):
   wavefront order: what the update's instructions cost when no load waits on memory.
 
 A sweep runs no faster than the larger floor, so `product / larger floor` near 1 says the sweep
-is at this machine's limit for its instructions, and only fewer instructions (SIMD across
-independent elements) or fewer sweeps would make it faster. What the first would buy is timed
-for the springs in the same turns: the springs in colour order (no two of a colour sharing a
-vertex) one at a time, and LANES at a time with lane arithmetic (`lane_sweeps`).
+is at this machine's limit for its instructions, and only other instructions would make it
+faster: fewer (SIMD across independent elements), or fewer of them on each update's chain of
+dependent operations, which the CPU cannot overlap (the arithmetic floor runs the product's own
+update, so it moves with it: on 2026-12-07 the spring update's division and its strain limit's
+branch came off that chain, and the update ran 1.25x faster), or fewer sweeps. What SIMD
+would buy is timed for the springs in the same turns: the springs in colour order (no two of a
+colour sharing a vertex) one at a time, and LANES at a time with lane arithmetic
+(`lane_sweeps`).
 
     python -m benchmarks.bench_sweep_floor
 
@@ -71,19 +75,17 @@ PATCH_VERTICES = 200  # the arithmetic floor's patch: its positions and springs 
 
 
 @ti.kernel
-def sweeps(reps: ti.i32, x: V3, xp: V3, w: F1, springs: I2, rest: F1, limit: F1, comp_t: F1,
-           comp_c: F1, beta: F1, lam: F1, inv_h: REAL, omega: REAL):
+def sweeps(reps: ti.i32, x: V3, xp: V3, w: F1, springs: I2, terms: V8, lam: F1, omega: REAL):
     """`reps` forward Gauss-Seidel sweeps of the product's spring update."""
     ti.loop_config(serialize=True)
     for _ in range(reps):
         for e in range(springs.shape[0]):
-            K.spring_gs_one(e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, inv_h,
-                            omega)
+            K.spring_gs_one(e, x, xp, w, springs, terms, lam, omega)
 
 
 @ti.kernel
-def touches(reps: ti.i32, zero: REAL, x: V3, xp: V3, w: F1, springs: I2, rest: F1, limit: F1,
-            comp_t: F1, comp_c: F1, beta: F1, lam: F1):
+def touches(reps: ti.i32, zero: REAL, x: V3, xp: V3, w: F1, springs: I2, terms: V8,
+            lam: F1):
     """`reps` sweeps of the update's loads and stores alone: every value spring_gs_one reads,
     summed in a shallow tree (so that no long chain of additions stands in for the update's
     arithmetic), written back where it writes times `zero` (a runtime argument, so that the
@@ -94,8 +96,9 @@ def touches(reps: ti.i32, zero: REAL, x: V3, xp: V3, w: F1, springs: I2, rest: F
             i = springs[e][0]
             j = springs[e][1]
             v = (x[j] - x[i]) + (xp[j] - xp[i])
-            a = ((rest[e] + limit[e]) + (comp_t[e] + comp_c[e])) + ((beta[e] + lam[e])
-                                                                   + (w[i] + w[j]))
+            t = terms[e]
+            a = (((t[0] + t[1]) + (t[2] + t[3])) + ((t[4] + t[5]) + (t[6] + t[7]))
+                 + (lam[e] + (w[i] + w[j])))
             s = (v[0] + v[1]) + (v[2] + a)
             lam[e] += zero * s
             x[i] -= zero * v
@@ -135,9 +138,8 @@ LANES = 8  # springs a lane sweep updates at once (AVX2: eight float32 lanes)
 
 
 @ti.kernel
-def lane_sweeps(reps: ti.i32, x: V3, xp: V3, w: F1, springs: I2, rest: F1, limit: F1,
-                comp_t: F1, comp_c: F1, beta: F1, lam: F1, groups: I1, inv_h: REAL,
-                omega: REAL):
+def lane_sweeps(reps: ti.i32, x: V3, xp: V3, w: F1, springs: I2, terms: V8, lam: F1,
+                groups: I1, omega: REAL):
     """`reps` sweeps of the product's spring update (kernels.spring_delta's arithmetic) over
     `groups`: LANES springs at a time, indices into the set's arrays (-1: an empty lane), no two
     of a group sharing a vertex (a colour's springs), so the group's springs are gathered into
@@ -152,43 +154,37 @@ def lane_sweeps(reps: ti.i32, x: V3, xp: V3, w: F1, springs: I2, rest: F1, limit
             rel = ti.Matrix([[0.0] * LANES] * 3, REAL)
             wi = ti.Vector([0.0] * LANES, REAL)
             wj = ti.Vector([0.0] * LANES, REAL)
-            r0 = ti.Vector([1.0] * LANES, REAL)
-            lim = ti.Vector([1.0] * LANES, REAL)
-            ct = ti.Vector([0.0] * LANES, REAL)
-            cc = ti.Vector([0.0] * LANES, REAL)
-            be = ti.Vector([0.0] * LANES, REAL)
+            t = ti.Matrix([[0.0] * LANES] * 8, REAL)  # the springs' terms (K.ST_*), by row
             la = ti.Vector([0.0] * LANES, REAL)
-            valid = ti.Vector([0.0] * LANES, REAL)
             for q in ti.static(range(LANES)):
-                # Branch-free: an empty lane reads spring 0 and is masked (its weights zero).
+                # Branch-free: an empty lane reads spring 0 and is masked (its weights and its
+                # inverse mass sum zero).
                 e[q] = ti.max(groups[g * LANES + q], 0)
-                valid[q] = ti.select(groups[g * LANES + q] >= 0, 1.0, 0.0)
+                valid = ti.select(groups[g * LANES + q] >= 0, 1.0, 0.0)
                 i = springs[e[q]][0]
                 j = springs[e[q]][1]
                 for c in ti.static(range(3)):
                     d[c, q] = x[j][c] - x[i][c]
                     rel[c, q] = (x[j][c] - xp[j][c]) - (x[i][c] - xp[i][c])
-                wi[q] = w[i] * valid[q]
-                wj[q] = w[j] * valid[q]
-                r0[q] = rest[e[q]]
-                lim[q] = limit[e[q]]
-                ct[q] = comp_t[e[q]]
-                cc[q] = comp_c[e[q]]
-                be[q] = beta[e[q]]
+                wi[q] = w[i] * valid
+                wj[q] = w[j] * valid
+                for r in ti.static(range(8)):
+                    t[r, q] = terms[e[q]][r]
+                t[K.ST_INV_W, q] *= valid
                 la[q] = lam[e[q]]
-            wsum = wi + wj
-            length = ti.sqrt(d[0, :] * d[0, :] + d[1, :] * d[1, :] + d[2, :] * d[2, :])
-            ok = (wsum > 0.0) & (length > 1e-9)
-            inv_len = 1.0 / ti.select(ok, length, 1.0)
-            rate = (d[0, :] * rel[0, :] + d[1, :] * rel[1, :] + d[2, :] * rel[2, :]) * inv_len
-            c_len = length - r0
-            alpha = ti.select(c_len < 0.0, cc, ct) * inv_h * inv_h
-            gamma = be * inv_h
-            den = ti.select(ok, (1.0 + gamma) * wsum + alpha, 1.0)
-            dl = ti.select(ok, omega * (-c_len - alpha * la - gamma * rate) / den, 0.0)
-            after = length + wsum * dl
-            move = dl + ti.select(after > lim, (lim - after) / ti.select(ok, wsum, 1.0), 0.0)
-            step = move * inv_len
+            len2 = d[0, :] * d[0, :] + d[1, :] * d[1, :] + d[2, :] * d[2, :]
+            ok = (t[K.ST_INV_W, :] > 0.0) & (len2 > 1e-18)
+            rate_len = d[0, :] * rel[0, :] + d[1, :] * rel[1, :] + d[2, :] * rel[2, :]
+            length = ti.sqrt(ti.select(ok, len2, 1.0))
+            inv_len = 1.0 / length
+            c_len = length - t[K.ST_REST, :]
+            neg = c_len < 0.0
+            alpha = ti.select(neg, t[K.ST_ALPHA_C, :], t[K.ST_ALPHA_T, :])
+            inv_den = ti.select(neg, t[K.ST_INV_DEN_C, :], t[K.ST_INV_DEN_T, :])
+            dl = omega * (-c_len - alpha * la - t[K.ST_GAMMA, :] * rate_len * inv_len) * inv_den
+            dl = ti.select(ok, dl, 0.0)
+            move = ti.min(dl, (t[K.ST_LIMIT, :] - length) * t[K.ST_INV_W, :])
+            step = ti.select(ok, move * inv_len, 0.0)
             for q in ti.static(range(LANES)):
                 # An empty lane's weights are zero, so it moves nothing and adds nothing.
                 i = springs[e[q]][0]
@@ -236,10 +232,11 @@ def _subset(a, index: np.ndarray, dtype):
 
 
 def _spring_subset(arrays: tuple, index: np.ndarray) -> tuple:
-    """A spring set's arrays (springs, then the per-spring values) at `index`, in its order."""
-    springs, *per_spring = arrays
-    return (_subset(springs, index, ti.math.ivec2),) + tuple(_subset(a, index, REAL)
-                                                            for a in per_spring)
+    """A spring set's arrays (springs, per-step terms, multipliers) at `index`, in its
+    order."""
+    springs, terms, lam = arrays
+    return (_subset(springs, index, ti.math.ivec2), _subset(terms, index, GUARD),
+            _subset(lam, index, REAL))
 
 
 def _timed(settings: dict[str, tuple[Callable[[], None], int]]) -> dict:
@@ -266,16 +263,14 @@ def measure(scene_name: str, fabric: str, resolution: str) -> list[dict]:
     solver = XPBDSolver(model, Effects(pins=bool(len(model.pinned))),
                         SolverSettings(substeps=SUBSTEPS, iterations=ITERATIONS))
     h = 1.0 / FPS / SUBSTEPS
-    solver._use_step(h)  # the bends' terms for this step
-    inv_h = 1.0 / h
+    solver._use_step(h)  # the springs' and bends' terms for this step
     omega = OVER_RELAXATION["xpbd"]  # the forward sweeps' over-relaxation (the default)
     x, xp, w = solver.x, solver.xp, solver.w
     disc = patch_vertices(x.to_numpy())
     label = f"{scene_name} {resolution}".strip()
     rows = []
 
-    sets = [(s.springs, s.rest, s.limit, s.comp_t, s.comp_c, s.beta, s.lam)
-            for s in solver.sets.values()]
+    sets = [(s.springs, s.terms, s.lam) for s in solver.sets.values()]
     patch_sets = []
     for arrays in sets:
         index = patch_elements(arrays[0].to_numpy(), disc, model.n_vertices)
@@ -289,16 +284,16 @@ def measure(scene_name: str, fabric: str, resolution: str) -> list[dict]:
         coloured.append((_spring_subset(arrays, order), _nd(ti.i32, groups)))
         lane_slots += len(groups)
     rows.append({"scene": label, "fabric": fabric, "elements": "springs", "count": n, **_timed({
-        "product": (lambda: [sweeps(REPEATS, x, xp, w, *a, inv_h, omega) for a in sets],
+        "product": (lambda: [sweeps(REPEATS, x, xp, w, *a, omega) for a in sets],
                     n * REPEATS),
         "memory floor": (lambda: [touches(REPEATS, 0.0, x, xp, w, *a) for a in sets],
                          n * REPEATS),
-        "arithmetic floor": (lambda: [sweeps(patch_reps, x, xp, w, *a, inv_h, omega)
+        "arithmetic floor": (lambda: [sweeps(patch_reps, x, xp, w, *a, omega)
                                       for a in patch_sets], n_patch * patch_reps),
-        "colour order": (lambda: [sweeps(REPEATS, x, xp, w, *a, inv_h, omega)
+        "colour order": (lambda: [sweeps(REPEATS, x, xp, w, *a, omega)
                                   for a, _ in coloured], n * REPEATS),
         f"colour order, {LANES} lanes": (
-            lambda: [lane_sweeps(REPEATS, x, xp, w, *a, g, inv_h, omega) for a, g in coloured],
+            lambda: [lane_sweeps(REPEATS, x, xp, w, *a, g, omega) for a, g in coloured],
             n * REPEATS),
     }), "lanes used": n / max(1, lane_slots)})
 

@@ -13,8 +13,19 @@ along a fibre in one update instead of one spring per sweep.
 import taichi as ti
 
 from datagen.sim.kernel_common import F1, I1, I2, V3, vec3
-from datagen.sim.kernels import spring_alpha_gamma, sweep_order
+from datagen.sim.kernels import sweep_order
 from datagen.sim.precision import REAL
+
+
+@ti.func
+def spring_alpha_gamma(e: ti.i32, c: REAL, comp_t: F1, comp_c: F1, beta: F1,
+                       inv_h: REAL) -> ti.types.vector(2, REAL):
+    """Spring e's XPBD compliance over h^2 (its tension or compression compliance, as its
+    constraint c is positive or negative) and its damping over h."""
+    alpha = comp_t[e]
+    if c < 0.0:
+        alpha = comp_c[e]
+    return ti.types.vector(2, REAL)(alpha * inv_h * inv_h, beta[e] * inv_h)
 
 
 @ti.kernel

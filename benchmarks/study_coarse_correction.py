@@ -348,11 +348,11 @@ def chain_sweep_ms(scene_name: str, resolution: str, fabric: str, lengths: tuple
     solver = XPBDSolver(model, Effects(pins=bool(len(model.pinned))),
                         SolverSettings(substeps=substeps, iterations=2))
     h = 1.0 / FPS / substeps
-    solver._use_step(h)  # the bends' terms for this step
+    solver._use_step(h)  # the springs' and bends' terms for this step
     x = solver.x.to_numpy().astype(np.float64)
     springs, chains = [], []
     for s in solver.sets.values():
-        springs.append((s.springs, s.rest, s.limit, s.comp_t, s.comp_c, s.beta, s.lam))
+        springs.append((s.springs, s.terms, s.lam))
         dirs = ti.ndarray(KC.vec3, s.count)
         for n in lengths:
             c = ChainLevel(s.springs.to_numpy(), x, n)
@@ -361,7 +361,7 @@ def chain_sweep_ms(scene_name: str, resolution: str, fabric: str, lengths: tuple
 
     def sweep() -> None:
         for args in springs:
-            K.springs_gauss_seidel(solver.x, solver.xp, solver.w, *args, h, 0, 1.0)
+            K.springs_gauss_seidel(solver.x, solver.xp, solver.w, *args, 0, 1.0)
 
     def chain() -> None:
         for args in chains:

@@ -523,7 +523,8 @@ def test_the_gpu_run_keeps_its_order_skips_what_the_deadline_cannot_hold_and_pac
 
 def test_the_sweep_floor_times_the_products_sweep_its_loads_alone_and_a_disc_in_l1():
     """benchmarks/bench_sweep_floor.py: its `product` kernel is the product's forward sweep
-    (the same floats as kernels.springs_gauss_seidel from the same state), its memory floor
+    (kernels.springs_gauss_seidel's update from the same state, within float32 rounding:
+    compiled apart under fast math, two kernels may associate a sum otherwise), its memory floor
     moves nothing (every load kept, every store of zero), and its arithmetic floor's patch is
     a disc of the cloth's springs, all ends within the disc, in an order where no two
     consecutive springs share a vertex more often than the product's wavefront order lets
@@ -543,9 +544,9 @@ def test_the_sweep_floor_times_the_products_sweep_its_loads_alone_and_a_disc_in_
     h, omega = 1.0 / 30.0 / 20, OVER_RELAXATION["xpbd"]
     rng = np.random.default_rng(5)
     x0 = (model.x0 + rng.normal(scale=0.002, size=model.x0.shape)).astype(NP_REAL)
+    solver._use_step(h)
     stretch = solver.sets["stretch"]
-    args = (stretch.springs, stretch.rest, stretch.limit, stretch.comp_t, stretch.comp_c,
-            stretch.beta, stretch.lam)
+    args = (stretch.springs, stretch.terms, stretch.lam)
 
     def state_after(sweep) -> tuple[np.ndarray, np.ndarray]:
         solver.x.from_numpy(x0)
@@ -555,12 +556,12 @@ def test_the_sweep_floor_times_the_products_sweep_its_loads_alone_and_a_disc_in_
         ti.sync()
         return solver.x.to_numpy(), stretch.lam.to_numpy()
 
-    ours = state_after(lambda: floor.sweeps(2, solver.x, solver.xp, solver.w, *args, 1.0 / h,
-                                            omega))
+    ours = state_after(lambda: floor.sweeps(2, solver.x, solver.xp, solver.w, *args, omega))
     product = state_after(lambda: [K.springs_gauss_seidel(solver.x, solver.xp, solver.w, *args,
-                                                          h, 0, omega) for _ in range(2)])
+                                                          0, omega) for _ in range(2)])
     assert np.abs(ours[0] - x0).max() > 1e-5  # the sweeps did move the cloth
-    assert np.array_equal(ours[0], product[0]) and np.array_equal(ours[1], product[1])
+    assert np.abs(ours[0] - product[0]).max() < 1e-6
+    assert np.abs(ours[1] - product[1]).max() < 1e-5 * np.abs(product[1]).max()
     touched = state_after(lambda: floor.touches(3, 0.0, solver.x, solver.xp, solver.w, *args))
     assert np.array_equal(touched[0], x0) and not touched[1].any()
 
@@ -595,6 +596,7 @@ def test_the_sweep_floors_lane_sweep_is_the_spring_update_eight_independent_spri
     model = _study_tube()
     solver = XPBDSolver(model, Effects(pins=True), SolverSettings(substeps=20, iterations=4))
     h, omega = 1.0 / 30.0 / 20, OVER_RELAXATION["xpbd"]
+    solver._use_step(h)
     stretch = solver.sets["stretch"]
     springs = stretch.springs.to_numpy()
     order, groups = floor.lane_groups(springs, model.n_vertices)
@@ -603,8 +605,7 @@ def test_the_sweep_floors_lane_sweep_is_the_spring_update_eight_independent_spri
     for group in groups.reshape(-1, floor.LANES):
         ends = springs[order[group[group >= 0]]].ravel()
         assert len(set(ends)) == len(ends)
-    arrays = floor._spring_subset((stretch.springs, stretch.rest, stretch.limit, stretch.comp_t,
-                                   stretch.comp_c, stretch.beta, stretch.lam), order)
+    arrays = floor._spring_subset((stretch.springs, stretch.terms, stretch.lam), order)
     rng = np.random.default_rng(5)
     x0 = (model.x0 + rng.normal(scale=0.002, size=model.x0.shape)).astype(NP_REAL)
 
@@ -617,9 +618,9 @@ def test_the_sweep_floors_lane_sweep_is_the_spring_update_eight_independent_spri
         return solver.x.to_numpy(), arrays[-1].to_numpy()
 
     scalar = state_after(lambda: floor.sweeps(3, solver.x, solver.xp, solver.w, *arrays,
-                                              1.0 / h, omega))
+                                              omega))
     lanes = state_after(lambda: floor.lane_sweeps(3, solver.x, solver.xp, solver.w, *arrays,
-                                                  floor._nd(ti.i32, groups), 1.0 / h, omega))
+                                                  floor._nd(ti.i32, groups), omega))
     assert np.abs(scalar[0] - x0).max() > 1e-3  # the sweeps did move the cloth
     assert np.abs(lanes[0] - scalar[0]).max() < 1e-6
     assert np.abs(lanes[1] - scalar[1]).max() < 1e-4 * np.abs(scalar[1]).max()

@@ -145,55 +145,48 @@ def clear_vec3(a: V3):
         a[i] = vec3(0.0)
 
 
-@ti.func
-def spring_alpha_gamma(e: ti.i32, c: REAL, comp_t: F1, comp_c: F1, beta: F1,
-                       inv_h: REAL) -> ti.types.vector(2, REAL):
-    """Spring e's XPBD compliance over h^2 (its tension or compression compliance, as its
-    constraint c is positive or negative) and its damping over h."""
-    alpha = comp_t[e]
-    if c < 0.0:
-        alpha = comp_c[e]
-    return ti.types.vector(2, REAL)(alpha * inv_h * inv_h, beta[e] * inv_h)
+# A spring's per-step terms (XPBDSolver._use_step: set once per step size, like the bends'),
+# one vector of eight a spring, read by spring_delta: its rest and limit lengths, its tension
+# and compression compliances over h^2, its damping over h, the inverses of the update's
+# denominator (1 + gamma) (w_i + w_j) + alpha for either compliance, and of w_i + w_j (zero
+# where both ends are pinned: nothing moves). The division by the denominator was on each
+# update's chain of dependent operations, which is what a serial sweep waits on.
+ST_REST, ST_LIMIT, ST_ALPHA_T, ST_ALPHA_C, ST_GAMMA, ST_INV_DEN_T, ST_INV_DEN_C, ST_INV_W = range(8)
 
 
 @ti.func
-def spring_delta(
-    x: V3,
-    xp: V3,
-    w: F1,
-    springs: I2,
-    rest: F1,
-    limit: F1,
-    comp_t: F1,
-    comp_c: F1,
-    beta: F1,
-    lam: F1,
-    e: ti.i32,
-    inv_h: REAL,
-    omega: REAL,
-) -> VEC4:
-    """XPBD update of spring e: (displacement along n, dlambda) with n from x_i to x_j, the
-    compliant part over-relaxed by omega. Past its limit length the spring is inextensible: the
-    displacement also removes the excess, exactly (strain limiting; the multiplier keeps only
-    the compliant part): an over-relaxed inequality would overshoot into compression."""
+def spring_delta(x: V3, xp: V3, w: F1, springs: I2, terms: V8, lam: F1, e: ti.i32,
+                 omega: REAL) -> VEC4:
+    """XPBD update of spring e: (its correction, along the spring from x_i to x_j, which each
+    end takes times its inverse mass; dlambda), the compliant part over-relaxed by omega. The
+    terms come from `terms[e]` (ST_*). Past its limit length the
+    spring is inextensible: the displacement also removes the excess, exactly (strain limiting;
+    the multiplier keeps only the compliant part): an over-relaxed inequality would overshoot
+    into compression. Where the compliant move dl would leave the spring longer than its limit,
+    length + (w_i + w_j) dl > limit, the move is the one that brings it to the limit, so the
+    move is the lesser of the two: a min, where a branch on the length after the move put two
+    more dependent operations on the update's chain."""
     i = springs[e][0]
     j = springs[e][1]
+    p = terms[e]
     out = VEC4(0.0)
-    wsum = w[i] + w[j]
-    d = x[j] - x[i]
-    length = d.norm()
-    if wsum > 0.0 and length > 1e-9:
-        n = d / length
-        c = length - rest[e]
-        ag = spring_alpha_gamma(e, c, comp_t, comp_c, beta, inv_h)
-        alpha, gamma = ag[0], ag[1]
-        rate = n.dot((x[j] - xp[j]) - (x[i] - xp[i]))
-        dl = omega * (-c - alpha * lam[e] - gamma * rate) / ((1.0 + gamma) * wsum + alpha)
-        move = dl
-        after = length + wsum * dl
-        if after > limit[e]:
-            move += (limit[e] - after) / wsum
-        out = VEC4(move * n, dl)
+    xi = x[i]
+    xj = x[j]
+    d = xj - xi
+    len2 = d.norm_sqr()
+    if p[ST_INV_W] > 0.0 and len2 > 1e-18:
+        # The rate along the spring, times its length: taken before the square root is done.
+        rate_len = d.dot((xj - xp[j]) - (xi - xp[i]))
+        length = ti.sqrt(len2)
+        inv_len = 1.0 / length
+        c = length - p[ST_REST]
+        compressed = c < 0.0
+        alpha = ti.select(compressed, p[ST_ALPHA_C], p[ST_ALPHA_T])
+        inv_den = ti.select(compressed, p[ST_INV_DEN_C], p[ST_INV_DEN_T])
+        dl = omega * (-c - alpha * lam[e] - p[ST_GAMMA] * rate_len * inv_len) * inv_den
+        move = ti.min(dl, (p[ST_LIMIT] - length) * p[ST_INV_W])
+        dx = (move * inv_len) * d
+        out = VEC4(dx[0], dx[1], dx[2], dl)
     return out
 
 
@@ -207,22 +200,9 @@ def sweep_order(k: ti.i32, n: ti.i32, reverse: ti.i32) -> ti.i32:
 
 
 @ti.func
-def spring_gs_one(
-    e: ti.i32,
-    x: V3,
-    xp: V3,
-    w: F1,
-    springs: I2,
-    rest: F1,
-    limit: F1,
-    comp_t: F1,
-    comp_c: F1,
-    beta: F1,
-    lam: F1,
-    inv_h: REAL,
-    omega: REAL,
-):
-    r = spring_delta(x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, e, inv_h, omega)
+def spring_gs_one(e: ti.i32, x: V3, xp: V3, w: F1, springs: I2, terms: V8, lam: F1,
+                  omega: REAL):
+    r = spring_delta(x, xp, w, springs, terms, lam, e, omega)
     lam[e] += r[3]
     i = springs[e][0]
     j = springs[e][1]
@@ -232,27 +212,13 @@ def spring_gs_one(
 
 
 @ti.kernel
-def springs_gauss_seidel(
-    x: V3,
-    xp: V3,
-    w: F1,
-    springs: I2,
-    rest: F1,
-    limit: F1,
-    comp_t: F1,
-    comp_c: F1,
-    beta: F1,
-    lam: F1,
-    h: REAL,
-    reverse: ti.i32,
-    omega: REAL,
-):
+def springs_gauss_seidel(x: V3, xp: V3, w: F1, springs: I2, terms: V8, lam: F1,
+                         reverse: ti.i32, omega: REAL):
     n_springs = springs.shape[0]
-    inv_h = 1.0 / h
     ti.loop_config(serialize=True)
     for k in range(n_springs):
         e = sweep_order(k, n_springs, reverse)
-        spring_gs_one(e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, inv_h, omega)
+        spring_gs_one(e, x, xp, w, springs, terms, lam, omega)
 
 
 @ti.kernel
@@ -497,15 +463,10 @@ def springs_coloured(
     xp: V3,
     w: F1,
     springs: I2,
-    rest: F1,
-    limit: F1,
-    comp_t: F1,
-    comp_c: F1,
-    beta: F1,
+    terms: V8,
     lam: F1,
     order: I1,
     colour_ptr: I1,
-    h: REAL,
     reverse: ti.i32,
     omega: REAL,
     n_colours: ti.template(),
@@ -515,8 +476,7 @@ def springs_coloured(
     for c in ti.static(range(n_colours)):
         r = colour_range(c, n_colours, reverse, colour_ptr)
         for k in range(r[0], r[1]):
-            spring_gs_one(order[k], x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam,
-                          1.0 / h, omega)
+            spring_gs_one(order[k], x, xp, w, springs, terms, lam, omega)
 
 
 @ti.kernel
@@ -841,11 +801,8 @@ def xpbd_frame(
     w: F1,
     air: V4,
     springs: I2,
-    rest: F1,
+    terms: V8,
     limit: F1,
-    comp_t: F1,
-    comp_c: F1,
-    beta: F1,
     lam: F1,
     set_ranges: I2,
     bends: I4,
@@ -909,10 +866,10 @@ def xpbd_frame(
 ):
     """All substeps of one frame of the XPBD solver in one serial launch: the same per-element
     functions, in the same order, as the per-effect kernels (which profiling runs use), without
-    a Python round trip per kernel. Its 64 non-template arguments are Taichi's limit on x64: a
-    new array has to share one with another (as `adj` and `lists` pack several)."""
+    a Python round trip per kernel. Its 61 non-template arguments are near Taichi's limit on
+    x64, 64: a new array may have to share one with another (as `adj` and `lists` pack
+    several)."""
     h = P[P_H]
-    inv_h = 1.0 / h  # the sweeps scale compliance and damping by it, never dividing by h
     omega = P[P_OMEGA]
     omega_reverse = P[P_OMEGA_REVERSE]
     recover = P[P_RECOVER]
@@ -996,10 +953,7 @@ def xpbd_frame(
                     e = lo + m
                     if reverse != 0:
                         e = hi - 1 - m
-                    spring_gs_one(
-                        e, x, xp, w, springs, rest, limit, comp_t, comp_c, beta, lam, inv_h,
-                        omega_s,
-                    )
+                    spring_gs_one(e, x, xp, w, springs, terms, lam, omega_s)
         # After the sweeps: what they left beyond a tether goes back onto it before contact.
         for t in range(n_tethers):
             tether_one(t, x, tethers, tether_len)

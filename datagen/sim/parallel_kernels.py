@@ -108,11 +108,7 @@ def xpbd_iteration_coloured(
     xp: V3,
     w: F1,
     springs: I2,
-    rest: F1,
-    limit: F1,
-    comp_t: F1,
-    comp_c: F1,
-    beta: F1,
+    terms: V8,
     lam: F1,
     spring_order: I1,
     spring_ranges: I2,
@@ -122,7 +118,6 @@ def xpbd_iteration_coloured(
     lam_b: V3,
     bend_order: I1,
     bend_ptr: I1,
-    h: REAL,
     reverse: ti.i32,
     omega: REAL,
     omega_b: REAL,
@@ -134,7 +129,6 @@ def xpbd_iteration_coloured(
     fused springs (solvers.XPBDSolver._build_fused). `spring_ranges` holds each colour's slice
     of `spring_order`, the sets one after another: first in forward order (n_spring_colours
     rows), then in reverse order, where each set sweeps its colours backwards."""
-    inv_h = 1.0 / h
     for c in ti.static(range(n_bend_colours)):
         r = colour_range(c, n_bend_colours, reverse, bend_ptr)
         for k in range(r[0], r[1]):
@@ -142,8 +136,7 @@ def xpbd_iteration_coloured(
     for c in ti.static(range(n_spring_colours)):
         r = spring_ranges[reverse * n_spring_colours + c]
         for k in range(r[0], r[1]):
-            spring_gs_one(spring_order[k], x, xp, w, springs, rest, limit, comp_t, comp_c, beta,
-                          lam, inv_h, omega)
+            spring_gs_one(spring_order[k], x, xp, w, springs, terms, lam, omega)
 
 
 @ti.kernel

@@ -176,6 +176,14 @@ class _SpringSet:
         index = index[self.order]
         self.index = index
         self.count = len(index)
+        self.model_arrays = {
+            "springs": model.springs[index],
+            "rest": model.rest_length[index].astype(np.float64),
+            "limit": model.limit_length[index].astype(np.float64),
+            "k_t": model.k_tension[index].astype(np.float64),
+            "k_c": model.k_compression[index].astype(np.float64),
+            "beta": model.spring_beta[index].astype(np.float64),
+        }
         self.springs = _nd(ti.math.ivec2, model.springs[index].astype(np.int32))
         self.rest = _nd(REAL, model.rest_length[index].astype(NP_REAL))
         self.limit = _nd(REAL, model.limit_length[index].astype(NP_REAL))
@@ -185,6 +193,36 @@ class _SpringSet:
         self.comp_c = _nd(REAL, (1.0 / model.k_compression[index]).astype(NP_REAL))
         self.beta = _nd(REAL, model.spring_beta[index].astype(NP_REAL))
         self.lam = _nd(REAL, np.zeros(self.count, NP_REAL))
+        # The xpbd sweeps' per-step terms (kernels.ST_*; spring_step_terms), set by
+        # XPBDSolver._use_step.
+        self.terms = ti.ndarray(KC.GUARD, max(self.count, 1))
+
+    def step_terms(self, w: np.ndarray, h: float) -> np.ndarray:
+        """spring_step_terms of this set's springs at step h, with inverse masses w."""
+        m = self.model_arrays
+        ends = m["springs"]
+        return spring_step_terms(m["rest"], m["limit"], m["k_t"], m["k_c"], m["beta"],
+                                 w[ends[:, 0]] + w[ends[:, 1]], h)
+
+
+def spring_step_terms(rest: np.ndarray, limit: np.ndarray, k_t: np.ndarray, k_c: np.ndarray,
+                      beta: np.ndarray, wsum: np.ndarray, h: float) -> np.ndarray:
+    """The springs' per-step terms for kernels.spring_delta at step h (kernels.ST_*), in
+    float64: rest and limit lengths, compliance over h^2 in tension and compression, damping
+    over h, the inverse of the XPBD update's denominator (1 + gamma) (w_i + w_j) + alpha for
+    either compliance, and the inverse of w_i + w_j (all three zero where both ends are
+    pinned)."""
+    alpha_t = 1.0 / (k_t * h * h)
+    alpha_c = 1.0 / (k_c * h * h)
+    gamma = beta / h
+    free = wsum > 0.0
+
+    def inverse(a: np.ndarray) -> np.ndarray:
+        return np.divide(1.0, a, out=np.zeros_like(a), where=free)
+
+    return np.stack([rest, limit, alpha_t, alpha_c, gamma,
+                     inverse((1.0 + gamma) * wsum + alpha_t),
+                     inverse((1.0 + gamma) * wsum + alpha_c), inverse(wsum)], axis=1)
 
 
 class ClothSolver:
@@ -629,7 +667,7 @@ class XPBDSolver(ClothSolver):
     def __init__(self, model, effects, settings) -> None:
         super().__init__(model, effects, settings)
         self.gauss_seidel = not self.parallel
-        self._stiff_h: float | None = None
+        self._step_h: float | None = None  # the step the per-step terms were set for
         self.n_stiff_bends = 0
         if self.n_bends:
             kw = model.bend_weights[self.bend_order].astype(np.float64)
@@ -777,20 +815,16 @@ class XPBDSolver(ClothSolver):
                 ranges.append((lo, lo + s.count))
                 lo += s.count
             self.f_springs = _nd(ti.math.ivec2, springs)
-            self.f_rest = _nd(REAL, cat("rest", NP_REAL))
             self.f_limit = _nd(REAL, cat("limit", NP_REAL))
-            self.f_comp_t = _nd(REAL, cat("comp_t", NP_REAL))
-            self.f_comp_c = _nd(REAL, cat("comp_c", NP_REAL))
-            self.f_beta = _nd(REAL, cat("beta", NP_REAL))
+            self.f_terms = ti.ndarray(KC.GUARD, len(springs))  # _use_step
             self.f_lam = _nd(REAL, np.zeros(len(springs), NP_REAL))
             self.f_ranges = _nd(ti.math.ivec2, np.asarray(ranges, np.int32))
             self.f_nsets = len(ranges)
             self.f_count = len(springs)
         else:
             self.f_springs = _nd(ti.math.ivec2, np.zeros((1, 2), np.int32))
-            self.f_rest = self.f_limit = self.f_comp_t = self.f_comp_c = self.f_beta = _nd(
-                REAL, np.zeros(1, NP_REAL)
-            )
+            self.f_limit = _nd(REAL, np.zeros(1, NP_REAL))
+            self.f_terms = ti.ndarray(KC.GUARD, 1)
             self.f_lam = _nd(REAL, np.zeros(1, NP_REAL))
             self.f_ranges = _nd(ti.math.ivec2, np.zeros((1, 2), np.int32))
             self.f_nsets = 0
@@ -822,10 +856,20 @@ class XPBDSolver(ClothSolver):
         return np.flatnonzero(stiff).astype(np.int32)
 
     def _use_step(self, h: float) -> None:
-        """Upload the stiff bends and the bends' per-step terms for step h (once per step size:
-        retries change it)."""
-        if h == self._stiff_h:
+        """Upload the stiff bends and the springs' and bends' per-step terms for step h (once
+        per step size: retries change it)."""
+        # The step as the kernels read it (P_H is a REAL): the terms then depend on that value
+        # alone, and 1/60/10 and 1/30/20, a float64 ulp apart, give the same terms (the output
+        # rate must not change the motion: tests/test_sim_physics.py).
+        h = float(NP_REAL(h))
+        if h == self._step_h:
             return
+        if self.sets:
+            w = self.w_np.astype(np.float64)
+            terms = [s.step_terms(w, h) for s in self.sets.values()]
+            for s, t in zip(self.sets.values(), terms, strict=True):
+                s.terms.from_numpy(t.astype(NP_REAL))
+            self.f_terms.from_numpy(np.concatenate(terms).astype(NP_REAL))
         if self.n_bends:
             # kernels.bend_delta: compliance over h^2, damping over h, and the inverse of the
             # update's denominator (zero where all four vertices are pinned: nothing moves).
@@ -840,7 +884,7 @@ class XPBDSolver(ClothSolver):
         self.stiff_bends = _nd(ti.i32, ids if len(ids) else np.zeros(1, np.int32))
         if not self.gauss_seidel and len(ids):
             self.stiff_bend_colours = _Colouring(self.bends_np[ids], self.n, ids)
-        self._stiff_h = h
+        self._step_h = h
 
     def advance_frame(self, collider, n_sub: int, h: float, profile: bool = False,
                       search: bool = True) -> None:
@@ -901,8 +945,7 @@ class XPBDSolver(ClothSolver):
         # upload to a device array cost 0.09 ms each in Taichi's Python.
         K.xpbd_frame(
             self.x, self.xp, self.v, self.w, self.air,
-            self.f_springs, self.f_rest, self.f_limit, self.f_comp_t, self.f_comp_c, self.f_beta,
-            self.f_lam,
+            self.f_springs, self.f_terms, self.f_limit, self.f_lam,
             self.f_ranges,
             self.bends, self.bend_kk, self.bend_step, self.lam_b, self.stiff_bends,
             self.pin_idx, self.pin_t0, self.pin_t1, self.tethers, self.tether_len,
@@ -984,9 +1027,9 @@ class XPBDSolver(ClothSolver):
             bends, omega_b = self._iteration_bends(it, sor)
             bends = bends or self._no_bend_colours
             self._run("fused_sweeps", PK.xpbd_iteration_coloured, self.x, self.xp, self.w,
-                      self.f_springs, self.f_rest, self.f_limit, self.f_comp_t, self.f_comp_c,
-                      self.f_beta, self.f_lam, self.fused_spring_order, self.fused_spring_ranges,
-                      *self._bend_args()[2:], bends.order, bends.ptr, h, reverse, sor, omega_b,
+                      self.f_springs, self.f_terms, self.f_lam, self.fused_spring_order,
+                      self.fused_spring_ranges, *self._bend_args()[2:], bends.order, bends.ptr,
+                      reverse, sor, omega_b,
                       bends.n_colours, self.n_spring_colours)
 
     def _per_effect_sweeps(self, h: float, s1: float) -> None:
@@ -1034,13 +1077,8 @@ class XPBDSolver(ClothSolver):
                         self.xp,
                         self.w,
                         s.springs,
-                        s.rest,
-                        s.limit,
-                        s.comp_t,
-                        s.comp_c,
-                        s.beta,
+                        s.terms,
                         s.lam,
-                        h,
                         reverse,
                         sor,
                     )
@@ -1086,9 +1124,8 @@ class XPBDSolver(ClothSolver):
                       reverse, omega, bends.n_colours)
         for name, s in self.sets.items():
             c = self.spring_colours[name]
-            self._run(name, K.springs_coloured, self.x, self.xp, self.w, s.springs, s.rest,
-                      s.limit, s.comp_t, s.comp_c, s.beta, s.lam, c.order, c.ptr, h, reverse,
-                      sor, c.n_colours)
+            self._run(name, K.springs_coloured, self.x, self.xp, self.w, s.springs, s.terms,
+                      s.lam, c.order, c.ptr, reverse, sor, c.n_colours)
 
 
 class ExplicitSolver(ClothSolver):
