@@ -176,6 +176,7 @@ class _SpringSet:
         index = index[self.order]
         self.index = index
         self.count = len(index)
+        # The model's values of the set's springs, in float64, for their per-step terms.
         self.model_arrays = {
             "springs": model.springs[index],
             "rest": model.rest_length[index].astype(np.float64),
@@ -858,9 +859,8 @@ class XPBDSolver(ClothSolver):
     def _use_step(self, h: float) -> None:
         """Upload the stiff bends and the springs' and bends' per-step terms for step h (once
         per step size: retries change it)."""
-        # The step as the kernels read it (P_H is a REAL): the terms then depend on that value
-        # alone, and 1/60/10 and 1/30/20, a float64 ulp apart, give the same terms (the output
-        # rate must not change the motion: tests/test_sim_physics.py).
+        # The step as the kernels read it (P_H is a REAL), as the sweeps took it when they
+        # divided by it themselves.
         h = float(NP_REAL(h))
         if h == self._step_h:
             return
