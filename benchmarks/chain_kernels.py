@@ -10,11 +10,26 @@ vertices' moves cancel and the chain acts as one long spring, which is what carr
 along a fibre in one update instead of one spring per sweep.
 """
 
+import numpy as np
 import taichi as ti
 
 from datagen.sim.kernel_common import F1, I1, I2, V3, vec3
 from datagen.sim.kernels import sweep_order
-from datagen.sim.precision import REAL
+from datagen.sim.precision import NP_REAL, REAL
+from datagen.sim.solvers import _nd
+
+
+def set_compliances(spring_set) -> tuple[ti.Ndarray, ti.Ndarray]:
+    """A solver spring set's tension and compression compliances (1 / stiffness) as device
+    arrays, in the set's order: the chain sweep's inputs (the product's sweeps read per-step
+    terms instead, `solvers.spring_step_terms`)."""
+    comp_t, comp_c = compliances_np(spring_set)
+    return _nd(REAL, comp_t.astype(NP_REAL)), _nd(REAL, comp_c.astype(NP_REAL))
+
+
+def compliances_np(spring_set) -> tuple[np.ndarray, np.ndarray]:
+    """The same compliances as float64 numpy arrays."""
+    return 1.0 / spring_set.model_arrays["k_t"], 1.0 / spring_set.model_arrays["k_c"]
 
 
 @ti.func

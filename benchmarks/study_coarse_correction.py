@@ -193,8 +193,8 @@ class CoarseSprings:
         sets = list(solver.sets.values())
         lam = np.concatenate([s.lam.to_numpy() for s in sets]).astype(np.float64)
         rest = np.concatenate([s.rest.to_numpy() for s in sets]).astype(np.float64)
-        comp_t = np.concatenate([s.comp_t.to_numpy() for s in sets]).astype(np.float64)
-        comp_c = np.concatenate([s.comp_c.to_numpy() for s in sets]).astype(np.float64)
+        comp_t = np.concatenate([CK.compliances_np(s)[0] for s in sets])
+        comp_c = np.concatenate([CK.compliances_np(s)[1] for s in sets])
         beta = np.concatenate([s.beta.to_numpy() for s in sets]).astype(np.float64)
         i, j = self.springs.T
         d = x[j] - x[i]
@@ -318,11 +318,12 @@ class CoarseXPBD(SweepsXPBD):
             self._levels = {name: [ChainLevel(s.springs.to_numpy(), x, n) for n in self.lengths]
                             for name, s in self.sets.items()}
             self._dirs = {name: ti.ndarray(KC.vec3, s.count) for name, s in self.sets.items()}
+            self._compliances = {name: CK.set_compliances(s) for name, s in self.sets.items()}
         for level in range(len(self.lengths)):
             for name, s in self.sets.items():
                 c = self._levels[name][level]
                 super()._run("chains", CK.chains_gauss_seidel, self.x, self.xp, self.w,
-                             s.springs, s.rest, s.comp_t, s.comp_c, s.beta, s.lam, c.ptr,
+                             s.springs, s.rest, *self._compliances[name], s.beta, s.lam, c.ptr,
                              c.members, c.flip, self._dirs[name], self._h, self._reverse,
                              1.0)
 
@@ -354,9 +355,10 @@ def chain_sweep_ms(scene_name: str, resolution: str, fabric: str, lengths: tuple
     for s in solver.sets.values():
         springs.append((s.springs, s.terms, s.lam))
         dirs = ti.ndarray(KC.vec3, s.count)
+        compliances = CK.set_compliances(s)
         for n in lengths:
             c = ChainLevel(s.springs.to_numpy(), x, n)
-            chains.append((s.springs, s.rest, s.comp_t, s.comp_c, s.beta, s.lam, c.ptr,
+            chains.append((s.springs, s.rest, *compliances, s.beta, s.lam, c.ptr,
                            c.members, c.flip, dirs))
 
     def sweep() -> None:

@@ -37,6 +37,7 @@ import scipy.sparse as sp
 
 import datagen.sim.simulate as simulate_module
 from benchmarks.bench_sim import ERROR_FRAMES, PEER_JSON, float64_reference
+from benchmarks.chain_kernels import compliances_np
 from benchmarks.study_bend_block import SweepsXPBD
 from datagen.errors import RejectedSequence
 from datagen.sim.precision import NP_REAL
@@ -190,7 +191,8 @@ class WarmStartXPBD(SweepsXPBD):
             d = x[j] - x[i]
             length = np.linalg.norm(d, axis=1)
             c = length - s.rest.to_numpy()
-            alpha = np.where(c < 0, s.comp_c.to_numpy(), s.comp_t.to_numpy()) / (h * h)
+            comp_t, comp_c = compliances_np(s)
+            alpha = np.where(c < 0, comp_c, comp_t) / (h * h)
             gamma = s.beta.to_numpy() / h
             rate = ((d / np.maximum(length, 1e-12)[:, None])
                     * ((x[j] - xp[j]) - (x[i] - xp[i]))).sum(axis=1)

@@ -190,8 +190,6 @@ class _SpringSet:
         self.limit = _nd(REAL, model.limit_length[index].astype(NP_REAL))
         self.k_t = _nd(REAL, model.k_tension[index].astype(NP_REAL))
         self.k_c = _nd(REAL, model.k_compression[index].astype(NP_REAL))
-        self.comp_t = _nd(REAL, (1.0 / model.k_tension[index]).astype(NP_REAL))
-        self.comp_c = _nd(REAL, (1.0 / model.k_compression[index]).astype(NP_REAL))
         self.beta = _nd(REAL, model.spring_beta[index].astype(NP_REAL))
         self.lam = _nd(REAL, np.zeros(self.count, NP_REAL))
         # The xpbd sweeps' per-step terms (kernels.ST_*; spring_step_terms), set by
