@@ -2181,6 +2181,8 @@ def test_the_limit_after_contact_on_moved_vertices_ends_where_full_sweeps_would_
 
 
 def test_an_effects_request_changes_the_scene_rules_by_name():
+    import dataclasses
+
     from datagen.errors import InputError
     from datagen.sim.effects import SceneContent, resolve_effects
 
@@ -2194,7 +2196,18 @@ def test_an_effects_request_changes_the_scene_rules_by_name():
     assert set(own.enabled()) - set(without.enabled()) == {"self_collision"}
     assert resolve_effects(("all", "-wind"), skirt).enabled() == [
         n for n in resolve_effects("all", skirt).enabled() if n != "wind"]
-    assert resolve_effects("auto,+wind", skirt).wind
+    # Naming wind asks for wind: without a velocity it would blow still air, so it is refused
+    # ('all' keeps every kernel on, wind's too, as the effects' cost measure).
+    with pytest.raises(InputError, match=r"wind only with a wind velocity \(--wind x,y,z; a "
+                                         r"recipe's simulation.wind\), got 'wind'"):
+        resolve_effects("auto,+wind", skirt)
+    with pytest.raises(InputError, match=r"wind only with a wind velocity"):
+        resolve_effects("gravity,stretch,wind", skirt)
+    assert resolve_effects("all", skirt).wind
+    windy = dataclasses.replace(skirt, wants_wind=True)
+    assert resolve_effects("auto,-wind,+pressure_drag", windy).enabled() == [
+        n for n in resolve_effects("auto", windy).enabled() if n != "wind"]
+    assert resolve_effects("gravity,stretch,wind", windy).wind
     with pytest.raises(InputError, match="'-name'.*got 'self_collision'"):
         resolve_effects("auto,self_collision", skirt)
     with pytest.raises(InputError, match="got '-selfcollision'"):
@@ -2231,6 +2244,11 @@ def test_simulate_rejects_a_bad_effects_request_before_any_work(tmp_path, monkey
     result = CliRunner().invoke(main, ["simulate", "--effects", "auto,wind", "--out", str(out)])
     assert result.exit_code == 2
     assert "field 'effects'" in result.output and "got 'wind'" in result.output
+    assert not out.exists()
+    # Wind named without a velocity would blow still air: refused before any work too.
+    result = CliRunner().invoke(main, ["simulate", "--effects", "auto,+wind", "--out", str(out)])
+    assert result.exit_code == 2
+    assert "wind only with a wind velocity (--wind x,y,z" in result.output
     assert not out.exists()
 
 

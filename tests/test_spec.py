@@ -122,6 +122,18 @@ def test_bad_recipes_name_the_field(tmp_path, patch, field):
     assert "bad.yaml" in str(exc.value)
 
 
+def test_a_recipe_that_names_wind_without_a_velocity_is_refused(tmp_path):
+    """Wind blows at the recipe's velocity: naming it with none would blow still air."""
+    p = tmp_path / "bad.yaml"
+    p.write_text(RECIPE.replace("seed: 1234", "seed: 1234\nsimulation: {effects: 'auto,+wind'}"))
+    with pytest.raises(InputError, match=r"bad.yaml: field 'simulation.effects': expected wind "
+                                         r"only with a wind velocity"):
+        load_recipe(p)
+    p.write_text(RECIPE.replace("seed: 1234", "seed: 1234\nsimulation: {effects: 'auto,+wind', "
+                                              "wind: [2.0, 0.0, 0.0]}"))
+    assert load_recipe(p).recipe.simulation.effects == "auto,+wind"
+
+
 def test_yaml_reads_exponent_floats_as_yaml_1_2_does(tmp_path):
     """PyYAML alone reads `1e-3` and `2.5E4` as strings (YAML 1.1 wants a dot and a signed
     exponent); the recipe loader reads them as numbers, and leaves strings and ints alone."""

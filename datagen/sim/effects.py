@@ -8,7 +8,8 @@ The rules (docs/simulator.md, "Effects"):
   garment with a loose fit, tightness < -0.5 on the size axis); a tight top needs none;
 - elastic rings: only when a garment has elastic loops;
 - pins: only when a garment has pinned vertices (waistbands attached to the body);
-- wind: only when the scene asks for it;
+- wind: only when the scene asks for it (a wind velocity); naming it in a request without one
+  is refused (it would blow still air);
 - pressure drag (air pushing on each panel, quadratic in its speed along its normal; on cloth
   worn on a body, on the panels' outer faces only): with wind, and otherwise only when asked
   (`auto,+pressure_drag`). Wind is air pushing on panels: on cotton facing a 3 m/s wind the
@@ -125,12 +126,30 @@ def split_effects_request(request: str | tuple[str, ...] | list[str]) -> tuple[s
     return "", names
 
 
+def require_wind_velocity(request: str | tuple[str, ...] | list[str], has_wind: bool) -> None:
+    """Refuse a request that names wind ('+wind', or 'wind' in a list) for a scene without a
+    wind velocity: the kernel would blow still air, a request that silently did nothing.
+    ('all' turns every kernel on, wind's too, as a measure of what they cost.)"""
+    base, names = split_effects_request(request)
+    if ("+wind" if base else "wind") in names and not has_wind:
+        raise InputError(
+            None, "effects",
+            "wind only with a wind velocity (--wind x,y,z; a recipe's simulation.wind)", "wind"
+        )
+
+
+def wind_blows(wind) -> bool:
+    """Whether a wind velocity (x, y, z, or None) blows at all."""
+    return wind is not None and any(abs(w) > 0 for w in wind)
+
+
 def resolve_effects(request: str | tuple[str, ...] | list[str], scene: SceneContent) -> Effects:
     """'auto' applies the rules, 'all' enables every supported effect, a list is taken as is
     (effects the scene cannot have, like body collision without a body, are an error).
     'auto' or 'all' followed by '-name' / '+name' items changes that base: 'auto,-self_collision'
     is the scene's own effects without self-collision."""
     base, names = split_effects_request(request)
+    require_wind_velocity(request, scene.wants_wind)
     if not base:
         chosen = set(names)
     else:

@@ -22,7 +22,7 @@ from datagen.errors import BoundBroken, InputError, RejectedSequence, SlidOffSho
 from datagen.qa import STRAIN_SHARE_MAX, Breach, breaches
 from datagen.sim import backend
 from datagen.sim.collider import BodyCollider, frame_tangents
-from datagen.sim.effects import Effects, SceneContent, resolve_effects
+from datagen.sim.effects import Effects, SceneContent, resolve_effects, wind_blows
 from datagen.sim.fabrics import Fabric, get_fabric
 from datagen.sim.fold_fields import FoldFields, JoinedFoldFields
 from datagen.sim.model import ClothModel, build_cloth_model
@@ -299,7 +299,7 @@ def scene_content(garments: list[Garment], has_body: bool, wind, fabrics) -> Sce
         tightness=tuple(tuple(g.tightness) for g in garments),
         has_elastic=any(g.elastic for g in garments),
         has_pins=any(g.pinned is not None and len(g.pinned) for g in garments),
-        wants_wind=wind is not None and any(abs(w) > 0 for w in wind),
+        wants_wind=wind_blows(wind),
         max_friction=max(f.friction for f in fabrics),
     )
 
