@@ -193,8 +193,8 @@ class CoarseSprings:
         sets = list(solver.sets.values())
         lam = np.concatenate([s.lam.to_numpy() for s in sets]).astype(np.float64)
         rest = np.concatenate([s.rest.to_numpy() for s in sets]).astype(np.float64)
-        comp_t = np.concatenate([CK.compliances_np(s)[0] for s in sets])
-        comp_c = np.concatenate([CK.compliances_np(s)[1] for s in sets])
+        comp_t, comp_c = (np.concatenate(parts)
+                          for parts in zip(*(CK.compliances_np(s) for s in sets), strict=True))
         beta = np.concatenate([s.beta.to_numpy() for s in sets]).astype(np.float64)
         i, j = self.springs.T
         d = x[j] - x[i]

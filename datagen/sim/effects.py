@@ -130,7 +130,11 @@ def require_wind_velocity(request: str | tuple[str, ...] | list[str], has_wind: 
     """Refuse a request that names wind ('+wind', or 'wind' in a list) for a scene without a
     wind velocity: the kernel would blow still air, a request that silently did nothing.
     ('all' turns every kernel on, wind's too, as a measure of what they cost.)"""
-    base, names = split_effects_request(request)
+    _refuse_windless(*split_effects_request(request), has_wind)
+
+
+def _refuse_windless(base: str, names: list[str], has_wind: bool) -> None:
+    """require_wind_velocity on a request already split by split_effects_request."""
     if ("+wind" if base else "wind") in names and not has_wind:
         raise InputError(
             None, "effects",
@@ -149,7 +153,7 @@ def resolve_effects(request: str | tuple[str, ...] | list[str], scene: SceneCont
     'auto' or 'all' followed by '-name' / '+name' items changes that base: 'auto,-self_collision'
     is the scene's own effects without self-collision."""
     base, names = split_effects_request(request)
-    require_wind_velocity(request, scene.wants_wind)
+    _refuse_windless(base, names, scene.wants_wind)
     if not base:
         chosen = set(names)
     else:
