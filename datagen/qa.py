@@ -62,12 +62,14 @@ def buried_share(cloth: np.ndarray, thickness: np.ndarray, body: np.ndarray,
     `garments` gives each garment's vertices lo:hi (the bound holds per garment, as the
     simulator's series do), else among all of them.
 
-    The simulator's deep_share signs each vertex by its nearest body triangle, which cannot see
-    cloth inside a part that passes through another: where a flexed thigh rises through the
-    lower torso (linear blend skinning at the hip), belly fabric 5 mm outside the torso lies
-    18-70 mm inside the thigh and reads as outside. Here the volume is the union of the parts,
-    inside where the generalised winding number (libigl's fast approximation) exceeds one half,
-    and the depth is the distance to the nearest triangle of any part.
+    Signing each vertex by its nearest body triangle cannot see cloth inside a part that passes
+    through another: where a flexed thigh rises through the lower torso (linear blend skinning
+    at the hip), belly fabric 5 mm outside the torso lies 18-70 mm inside the thigh and reads as
+    outside. Here the volume is the union of the parts, inside where the generalised winding
+    number (libigl's fast approximation) exceeds one half, and the depth is the distance to the
+    nearest triangle of any part. The simulator's deep_share reads the same volume since
+    2026-12-07 (its own ray count, distances to the colliding triangles only:
+    BodyCollider.inside_depth); this is the check that does not depend on the collider.
 
     `cloth` (F, V, 3) every garment's vertices at the output frames, `thickness` (V,) metres,
     `body` (F, Vb, 3) the body at the same frames, `faces` (T, 3) all of the body's triangles

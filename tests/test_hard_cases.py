@@ -74,7 +74,8 @@ def test_bad_case_file_names_the_field(tmp_path):
 def test_buried_share_sees_cloth_inside_a_part_that_passes_through_another():
     """Two closed boxes that overlap, as a flexed thigh and the lower torso do: a point inside
     box A, 5 cm from box B's face (on its outer side), is 45 cm inside A. Its nearest triangle is
-    B's and says outside (the simulator's deep_share); qa.buried_share says inside."""
+    B's and says outside (the simulator's deep_share before it read the volume too);
+    qa.buried_share says inside."""
     import igl
     import trimesh
 

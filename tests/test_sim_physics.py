@@ -284,9 +284,10 @@ def _block_over_sheet(parts: bool, speed: float) -> tuple[list[int], object]:
 def test_cloth_on_one_body_part_is_pushed_by_another_that_folds_onto_it():
     """A tracked cloth vertex follows its own triangle's surface; another part closing in is
     not on it. A block sliding across a plate it overlaps (as the forearm overlaps the upper
-    arm in a bent elbow) swallowed a sheet lying on the plate whole, and the QA's depth, which
-    asks the nearest triangle (the plate's, outside), did not see it: 200 of the 625 vertices
-    were inside the block at once, and none too deep for the QA (measured). Where the collider
+    arm in a bent elbow) swallowed a sheet lying on the plate whole: 200 of the 625 vertices
+    were inside the block at once. The QA's depth asked their nearest triangle (the plate's,
+    outside) and saw none of them until it read inside by the body's volume (2026-12-07); now
+    it counts each one deeper than its thickness, in every frame. Where the collider
     knows the body's parts, a vertex with a facing surface of another part in its cell is
     searched again as that surface closes in (search_kernels.nearest_one), takes it as its triangle
     and is pushed ahead of it. (At 0.5 m/s the block can come from beyond a cell between two
@@ -297,8 +298,9 @@ def test_cloth_on_one_body_part_is_pushed_by_another_that_folds_onto_it():
     x = result.vertices["sheet"][-1]
     assert x[:, 0].min() > 0.2 + 0.025  # the whole sheet ahead of the block, which ends at 0.2
     blind, run = _block_over_sheet(parts=False, speed=0.25)
-    assert max(blind) > 100  # without parts the check sees the sheet swallowed...
-    assert run.qa["deep_share"].max() == 0.0  # ...where the QA sees none of it
+    assert max(blind) > 100  # without parts the sheet is swallowed...
+    too_deep = np.round(run.qa["deep_share"] * len(run.vertices["sheet"][0])).astype(int)
+    assert too_deep.tolist() == blind  # ...and the QA sees every swallowed vertex
 
 
 def _plate_folding_onto_trouser_leg(fold: bool) -> tuple[list[int], object]:
@@ -1476,22 +1478,43 @@ def test_the_depth_qa_sees_cloth_deeper_than_a_cell_inside():
     # cursors): the same triangles in each column, in whatever order.
     from datagen.sim import depth_kernels as DK
     from datagen.sim import grid_kernels as GK
+    from datagen.sim.kernel_common import GUARD
+    from datagen.sim.precision import REAL
 
     grid, origin, inv_column, dims = collider._column_grid()
     n_cols = int(dims[0] * dims[1])
     serial_starts = grid.starts.to_numpy()[: n_cols + 1]
     serial_items = grid.items.to_numpy()[: serial_starts[-1]]
+    serial_boxes = grid.boxes.to_numpy()[: serial_starts[-1]]
+    serial_along = grid.along.to_numpy()[: 2 * n_cols]
     starts = ti.ndarray(ti.i32, n_cols + 1)
     items = ti.ndarray(ti.i32, len(serial_items))
+    boxes = ti.ndarray(GUARD, len(serial_items))
+    along = ti.ndarray(REAL, 2 * n_cols)
     blocks = ti.ndarray(ti.i32, n_cols // GK.PREFIX_BLOCK + 2)
-    DK.column_count(collider.b1, collider.faces, origin, inv_column, dims, grid.counts, grid.tbox)
+    DK.column_count(collider.b1, collider.faces, origin, inv_column, dims, grid.counts, grid.tbox,
+                    along)
     GK.grid_prefix(grid.counts, starts, n_cols, blocks)
-    DK.column_fill(grid.tbox, dims, grid.counts, starts, items)
+    DK.column_fill(collider.b1, collider.faces, grid.tbox, dims, grid.counts, starts, items,
+                   boxes)
     np.testing.assert_array_equal(starts.to_numpy(), serial_starts)
+    np.testing.assert_array_equal(along.to_numpy(), serial_along)
     parallel_items = items.to_numpy()
+    parallel_boxes = boxes.to_numpy()
     for c in np.flatnonzero(np.diff(serial_starts)):
         lo, hi = serial_starts[c], serial_starts[c + 1]
-        np.testing.assert_array_equal(np.sort(parallel_items[lo:hi]), np.sort(serial_items[lo:hi]))
+        order, serial_order = (np.argsort(parallel_items[lo:hi], kind="stable"),
+                               np.argsort(serial_items[lo:hi], kind="stable"))
+        np.testing.assert_array_equal(parallel_items[lo:hi][order],
+                                      serial_items[lo:hi][serial_order])
+        np.testing.assert_array_equal(parallel_boxes[lo:hi][order],
+                                      serial_boxes[lo:hi][serial_order])
+    # Each column's extent along the ray is its triangles' (the scan's early answer).
+    end = collider.b1.to_numpy()[tri]
+    for c in np.flatnonzero(np.diff(serial_starts))[::7]:
+        filed = serial_items[serial_starts[c]:serial_starts[c + 1]]
+        ray = end[filed][:, :, DK.RAY_AXIS]
+        assert serial_along[2 * c] == ray.min() and serial_along[2 * c + 1] == ray.max()
 
     open_collider = BodyCollider(faces[1:], np.ones(len(faces) - 1, bool), len(verts))
     assert not open_collider.closed
@@ -1499,6 +1522,85 @@ def test_the_depth_qa_sees_cloth_deeper_than_a_cell_inside():
     sd = open_collider.signed_distance(points)
     far = np.abs(sd) == np.float32(open_collider.cell)
     assert (sd[far & inside] > 0).all()
+
+
+@pytest.mark.parametrize("hashed", [False, True])
+def test_the_depth_qa_reads_inside_by_the_bodys_volume_and_depth_by_the_nearest_triangle(
+        hashed, monkeypatch):
+    """The depth QA's inside_depth: -1 outside the volume of a closed body (the union of its
+    parts, judged against trimesh's ray tests), and inside each point's distance to the nearest
+    filed triangle at the frame's end (judged against libigl's closest points), or the reach
+    where none is that near. Two spheres overlap as a limb sunk into the torso: a point inside
+    one, a centimetre outside the other's surface (its nearest triangle), is inside and that
+    deep (qa.buried_share's verdict), where signed_distance, signing by that triangle, reads
+    outside. The body moves over the frame, so
+    the search reads the solver's grid of swept boxes; the hint triangles only bound it; both
+    orientations of the triangles; a collider that is not closed has no inside to ask about."""
+    import igl
+    import taichi as ti
+    import trimesh
+
+    from datagen.sim import collider as collider_module
+
+    if hashed:
+        monkeypatch.setattr(collider_module, "DENSE_GRID_CELLS", 0)
+    a = trimesh.creation.icosphere(subdivisions=3, radius=0.12)
+    b = a.copy()
+    b.apply_translation([0.0, 0.0, 0.15])
+    both = trimesh.util.concatenate([a, b])
+    v0, faces = np.asarray(both.vertices, np.float64), np.asarray(both.faces)
+    v1 = v0 * 1.05 + [0.02, -0.01, 0.01]  # grown and moved over the frame
+    rng = np.random.default_rng(17)
+    points = rng.uniform([-0.15, -0.15, -0.15], [0.15, 0.15, 0.3], size=(6000, 3)) * 1.05
+    # Near the surfaces, inside and out, where the depth verdicts are drawn.
+    on = trimesh.Trimesh(v1, faces, process=False).sample(3000, seed=4)
+    points = np.concatenate([points, on + rng.normal(scale=0.004, size=on.shape)])
+    na, nfa = len(a.vertices), len(a.faces)
+    # Each sphere's own ray test (the union's would count the overlap's crossings as outside).
+    end_a = trimesh.Trimesh(v1[:na], faces[:nfa], process=False)
+    end_b = trimesh.Trimesh(v1[na:], faces[nfa:] - na, process=False)
+    inside = end_a.contains(points) | end_b.contains(points)
+    assert (end_a.contains(points) & end_b.contains(points)).sum() > 100  # winding number two
+    mask = np.ones(len(faces), bool)
+    mask[faces[:, 0] % 7 == 0] = False  # unfiled triangles are not searched
+    # libigl's exact closest points (trimesh's candidate search misses the nearest triangle
+    # of a few points within a millimetre of the surface by up to 15 um here).
+    distance = np.sqrt(igl.point_mesh_squared_distance(points, v1, faces[mask])[0])
+    reach = 0.006
+    for tri in (faces, faces[:, ::-1]):
+        collider = BodyCollider(tri, mask, len(v0))
+        collider.set_frames(v0, v1)
+        assert collider.hashed == hashed
+        depth = collider.inside_depth(points, within=reach)
+        np.testing.assert_array_equal(depth >= 0.0, inside)
+        assert inside.sum() > 1500 and (~inside).sum() > 3000
+        np.testing.assert_array_equal(depth[~inside], -1.0)
+        near = inside & (distance < reach - 1e-6)
+        beyond = inside & (distance > reach + 1e-6)
+        assert near.sum() > 500 and beyond.sum() > 500
+        np.testing.assert_allclose(depth[near], distance[near], atol=2e-6)
+        np.testing.assert_array_equal(depth[beyond], np.float32(reach))
+        # The same with hints: any triangle, an unfiled one, or out of range.
+        hints = rng.integers(-1, len(faces) + 50, size=len(points)).astype(np.int32)
+        hint = ti.ndarray(ti.i32, len(points))
+        hint.from_numpy(hints)
+        np.testing.assert_allclose(collider.inside_depth(points, hint=hint, within=reach), depth,
+                                   atol=1e-6)
+    # Inside sphere a, 10 cm from its surface, and 1 cm outside sphere b's, the nearest
+    # surface: inside, 1 cm deep (deeper than any fabric's thickness); its nearest triangle,
+    # b's, says outside.
+    centre_b = v1[na:].mean(axis=0)
+    radius_b = np.linalg.norm(v1[na] - centre_b)
+    probe = (centre_b + [0.0, 0.0, -(radius_b + 0.01)])[None]
+    assert end_a.contains(probe)[0] and not end_b.contains(probe)[0]
+    full = BodyCollider(faces, np.ones(len(faces), bool), len(v0))
+    full.set_frames(v1, v1)
+    assert full.signed_distance(probe)[0] == pytest.approx(0.01, abs=2e-4)
+    assert full.inside_depth(probe)[0] == pytest.approx(0.01, abs=2e-4)
+    open_collider = BodyCollider(faces[1:], np.ones(len(faces) - 1, bool), len(v0))
+    open_collider.set_frames(v1, v1)
+    with pytest.raises(ValueError, match="not a closed surface"):
+        open_collider.inside_depth(points)
 
 
 def test_colouring_gives_each_colour_vertex_disjoint_elements():

@@ -98,8 +98,8 @@ class CaseResult:
     strain_share_max: float = float("nan")
     strain_p999_max: float = float("nan")
     deep_share_max: float = float("nan")
-    # inside the body's volume, the union of its parts (qa.buried_share): deep_share's blind
-    # spot is cloth inside a part that passes through another
+    # inside the body's volume, the union of its parts, by libigl (qa.buried_share): the same
+    # verdict as deep_share's since 2026-12-07, independent of the simulator's collider
     buried_share_max: float = float("nan")
     kinetic_per_kg_max: float = float("nan")
     retries: int = 0

@@ -296,9 +296,10 @@ def buried_at_flexed_joints(record: SequenceRecord,
                             fabrics: Mapping[str, Fabric] | None = None) -> list[Breach]:
     """The depth bound judged by the body's volume (qa.buried_share), in the output frames
     where the body stage found skinning sinking parts into each other across a flexed joint:
-    there the simulator's nearest-triangle depth cannot see cloth left inside one part while
-    outside the part it tracks (docs/simulator.md, the fast kick). Only those frames, because
-    the volume costs about 0.1 s a frame; a breach elsewhere is the hard cases' to find."""
+    there cloth is left inside one part while outside the part it tracks (docs/simulator.md,
+    the fast kick). The simulator's deep_share reads the same volume at every frame (since
+    2026-12-07), through the collider it checks; this is libigl's verdict, independent of it.
+    Only those frames, because it costs about 0.1 s a frame; elsewhere the hard cases check."""
     from datagen import qa
     from datagen.qa import Breach
 

@@ -902,7 +902,7 @@ class _Simulation:
                                        + "; the run stopped there", (frame, frame))
         for g, (lo, hi) in zip(self.garments, self.model.garment_ranges, strict=True):
             outputs[g.name].append(x[lo:hi].astype(np.float32))
-        sd = None
+        flags = None
         if self.collider is not None and self.effects.body_collision:
             # The collider holds this frame's body as its end position. Each vertex measured
             # against its closest triangle, found anew: the triangle a vertex tracks can be
@@ -914,10 +914,17 @@ class _Simulation:
                 self.collider.set_frames(b, b)
             # The solver's tracked triangles only bound the search (it finds the nearest).
             # Read in place: the solver holds this frame's end (_advance copied a retry's in).
-            sd = self.collider.signed_distance(self.solver.x, hint=self.solver.tri,
-                                               within=self._depth_reach)
+            if self.collider.closed:
+                # Inside by the body's volume, and how deep: only the vertices inside are
+                # searched for (docs/simulator.md, "The depth QA by the body's volume").
+                depth = self.collider.inside_depth(self.solver.x, hint=self.solver.tri,
+                                                   within=self._depth_reach)
+                flags = (depth >= 0.0, depth > self.model.thickness)
+            else:
+                sd = self.collider.signed_distance(self.solver.x, hint=self.solver.tri,
+                                                   within=self._depth_reach)
+                flags = (sd < 0.0, sd < -self.model.thickness)
         strain = self._strain(x)
-        flags = None if sd is None else (sd < 0.0, sd < -self.model.thickness)
         qa_rows.append([_qa(self.model, p, v, flags, strain) for p in self.parts])
         if self.options.bound_guard and len(self.parts) == 1:
             frame = len(qa_rows) - 1
