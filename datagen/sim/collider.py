@@ -459,8 +459,9 @@ class BodyCollider:
         is: -1 outside its volume (the whole mesh's winding number), and inside the distance to
         its closest filed triangle within `within` (default and at most a grid cell), or
         `within` where none is that near. What the depth QA asks (is a vertex inside, and
-        deeper than its thickness?) for a third to a half of signed_distance's cost: only the
-        few points inside are searched for, in the solver's grid of swept boxes, so no grid
+        deeper than its thickness?) for about half of signed_distance's cost (2026-12-07: 3.2
+        against 7.2 ms a frame on the walking t-shirt, 1.0 against 1.9 on the 4k sheet): only
+        the few points inside are searched for, in the solver's grid of swept boxes, so no grid
         of the end boxes is built (depth_kernels.grid_inside_depth). Inside is the volume,
         the union of a body's parts: a point inside a part that passes through another is
         inside, whichever part's triangle is nearest. Arguments as signed_distance's."""

@@ -1,6 +1,7 @@
-"""The depth QA: each cloth vertex's signed distance to the closed body surface at a frame's end,
-from the grid's closest triangle within a reach of at most a cell, and beyond it inside or
-outside by the winding of a ray through a column grid."""
+"""The depth QA: on a closed body, whether each cloth vertex is inside its volume at a frame's
+end (the winding number of a ray through a column grid) and, for the few inside, the distance to
+the grid's closest triangle within a reach of at most a cell (grid_inside_depth); on a collider
+that is not closed, each vertex's signed distance by that triangle (grid_signed_distance)."""
 
 import taichi as ti
 
