@@ -80,14 +80,13 @@ def count_columns(b: V3, faces: I3, origin: vec3, inv_cell: REAL, dims: ti.math.
         f = faces[t]
         span = triangle_columns(b, f, origin, inv_cell, dims)
         spans[t] = span
-        lo = ti.min(b[f[0]][RAY_AXIS], b[f[1]][RAY_AXIS], b[f[2]][RAY_AXIS])
-        hi = ti.max(b[f[0]][RAY_AXIS], b[f[1]][RAY_AXIS], b[f[2]][RAY_AXIS])
+        box = item_box(b, f)  # [5] and [0]: its lowest and highest along the ray
         for i in range(span[0], span[1] + 1):
             for j in range(span[2], span[3] + 1):
                 c = i * dims[1] + j
                 ti.atomic_add(counts[c], 1)
-                ti.atomic_min(along[2 * c], lo)
-                ti.atomic_max(along[2 * c + 1], hi)
+                ti.atomic_min(along[2 * c], box[5])
+                ti.atomic_max(along[2 * c + 1], box[0])
 
 
 @ti.func
