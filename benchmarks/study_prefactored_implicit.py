@@ -84,7 +84,7 @@ def serial_gradient(x: V3, xn: V3, vn: V3, mass: F1, drag: F1, g: V3, springs: I
     ti.loop_config(serialize=True)
     for _ in range(1):
         IK.gradient_all(x, xn, vn, mass, drag, g, springs, rest, k_t, k_c, beta, bends, kw,
-                        stiff, bbeta, gravity, vec3(0.0), h, n_springs, n_bends, use_gravity,
+                        stiff, bbeta, gravity, h, n_springs, n_bends, use_gravity,
                         use_air)
 
 

@@ -376,7 +376,7 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, fp
     from datagen.body.anny_model import default_body_model
     from datagen.io.shard import ShardWriter, write_record
     from datagen.pipeline.stages import run_sequence
-    from datagen.sim.effects import require_wind_velocity, split_effects_request, wind_blows
+    from datagen.sim.effects import check_wind_request, split_effects_request, wind_blows
     from datagen.sim.fabrics import get_fabric, load_fabrics
     from datagen.sim.progress import frame_progress
 
@@ -397,7 +397,7 @@ def simulate(seed, fabric, fabrics_file, garment, action, bvh, amass, frames, fp
             raise click.BadParameter(f"expected 'x,y,z' in m/s, three finite numbers, got "
                                      f"{wind!r}", param_hint="--wind")
     effect_req = effects if effects in ("auto", "all") else tuple(effects.split(","))
-    require_wind_velocity(effect_req, wind_blows(wind_v))  # before any work too
+    check_wind_request(effect_req, wind_blows(wind_v))  # before any work too
     spec = replace(spec, simulation=replace(spec.simulation, solver=solver, quality=quality,
                                             effects=effect_req, wind=wind_v))
     bar = FrameBar()

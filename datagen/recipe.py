@@ -137,10 +137,10 @@ class SimulationConfig:
         check_range(self.settle_seconds, 0.0, 10.0, source, f"{path}.settle_seconds")
         if self.qa not in QA_POLICIES:
             raise InputError(source, f"{path}.qa", f"one of {', '.join(QA_POLICIES)}", self.qa)
-        from datagen.sim.effects import require_wind_velocity, wind_blows
+        from datagen.sim.effects import check_wind_request, wind_blows
 
         try:
-            require_wind_velocity(self.effects, wind_blows(self.wind))
+            check_wind_request(self.effects, wind_blows(self.wind))
         except InputError as exc:
             raise InputError(source, f"{path}.effects", exc.expected, exc.got) from None
 

@@ -122,8 +122,10 @@ def test_bad_recipes_name_the_field(tmp_path, patch, field):
     assert "bad.yaml" in str(exc.value)
 
 
-def test_a_recipe_that_names_wind_without_a_velocity_is_refused(tmp_path):
-    """Wind blows at the recipe's velocity: naming it with none would blow still air."""
+def test_a_recipe_whose_wind_would_do_nothing_is_refused(tmp_path):
+    """Wind blows at the recipe's velocity: naming it with none would blow still air. And it
+    pushes on panels by pressure drag alone: a recipe that keeps wind and drops that law would
+    blow nothing either."""
     p = tmp_path / "bad.yaml"
     p.write_text(RECIPE.replace("seed: 1234", "seed: 1234\nsimulation: {effects: 'auto,+wind'}"))
     with pytest.raises(InputError, match=r"bad.yaml: field 'simulation.effects': expected wind "
@@ -132,6 +134,11 @@ def test_a_recipe_that_names_wind_without_a_velocity_is_refused(tmp_path):
     p.write_text(RECIPE.replace("seed: 1234", "seed: 1234\nsimulation: {effects: 'auto,+wind', "
                                               "wind: [2.0, 0.0, 0.0]}"))
     assert load_recipe(p).recipe.simulation.effects == "auto,+wind"
+    p.write_text(RECIPE.replace("seed: 1234", "seed: 1234\nsimulation: {effects: "
+                                              "'auto,-pressure_drag', wind: [2.0, 0.0, 0.0]}"))
+    with pytest.raises(InputError, match=r"bad.yaml: field 'simulation.effects': expected wind "
+                                         r"together with pressure_drag"):
+        load_recipe(p)
 
 
 def test_yaml_reads_exponent_floats_as_yaml_1_2_does(tmp_path):

@@ -12,10 +12,10 @@ The rules (docs/simulator.md, "Effects"):
   is refused (it would blow still air);
 - pressure drag (air pushing on each panel, quadratic in its speed along its normal; on cloth
   worn on a body, on the panels' outer faces only): with wind, and otherwise only when asked
-  (`auto,+pressure_drag`). Wind is air pushing on panels: on cotton facing a 3 m/s wind the
-  linear drag alone pushes 0.45 N/m^2, the pressure 6.5 (docs/fabrics.md). In still air,
-  Blender's linear drag is CLOTH3D's model of the air, and docs/simulator.md ("Open shirts on
-  the move") has what the quadratic one changes there.
+  (`auto,+pressure_drag`). Wind is air pushing on panels, and it acts only through this law
+  (the linear drag is Blender's damping, relative to still air), so wind without pressure drag
+  is refused. In still air, Blender's linear drag is CLOTH3D's model of the air, and
+  docs/simulator.md ("Open shirts on the move") has what the quadratic one changes there.
 `--effects all` turns everything on that the scene can support; an explicit list overrides;
 `auto` or `all` followed by `-name` / `+name` items changes that base (`auto,-self_collision`).
 """
@@ -126,19 +126,31 @@ def split_effects_request(request: str | tuple[str, ...] | list[str]) -> tuple[s
     return "", names
 
 
-def require_wind_velocity(request: str | tuple[str, ...] | list[str], has_wind: bool) -> None:
-    """Refuse a request that names wind ('+wind', or 'wind' in a list) for a scene without a
-    wind velocity: the kernel would blow still air, a request that silently did nothing.
-    ('all' turns every kernel on, wind's too, as a measure of what they cost.)"""
-    _refuse_windless(*split_effects_request(request), has_wind)
+def check_wind_request(request: str | tuple[str, ...] | list[str], has_wind: bool) -> None:
+    """Refuse a request whose wind would silently do nothing: one that names wind ('+wind', or
+    'wind' in a list) for a scene without a wind velocity (the kernels would blow still air;
+    'all' turns every kernel on, wind's too, as a measure of what they cost), and, in a scene
+    with one, a request that keeps wind but not pressure drag, the only law wind acts by."""
+    _check_wind(*split_effects_request(request), has_wind)
 
 
-def _refuse_windless(base: str, names: list[str], has_wind: bool) -> None:
-    """require_wind_velocity on a request already split by split_effects_request."""
+def _check_wind(base: str, names: list[str], has_wind: bool) -> None:
+    """check_wind_request on a request already split by split_effects_request."""
     if ("+wind" if base else "wind") in names and not has_wind:
         raise InputError(
             None, "effects",
             "wind only with a wind velocity (--wind x,y,z; a recipe's simulation.wind)", "wind"
+        )
+    if not has_wind:
+        return
+    wind_on = "-wind" not in names if base else "wind" in names
+    pressure_on = "-pressure_drag" not in names if base else "pressure_drag" in names
+    if wind_on and not pressure_on:
+        hint = f" ({base},-wind,-pressure_drag drops both)" if base else ""
+        raise InputError(
+            None, "effects",
+            f"wind together with pressure_drag, the law wind pushes on panels by{hint}",
+            "-pressure_drag" if base else "wind",
         )
 
 
@@ -153,7 +165,7 @@ def resolve_effects(request: str | tuple[str, ...] | list[str], scene: SceneCont
     'auto' or 'all' followed by '-name' / '+name' items changes that base: 'auto,-self_collision'
     is the scene's own effects without self-collision."""
     base, names = split_effects_request(request)
-    _refuse_windless(base, names, scene.wants_wind)
+    _check_wind(base, names, scene.wants_wind)
     if not base:
         chosen = set(names)
     else:

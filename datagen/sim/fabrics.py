@@ -74,7 +74,7 @@ class Fabric:
     bending: float  # N m, bending rigidity
     stretch_damping: float  # s, Rayleigh factor on stretch/shear springs
     bending_damping: float  # s, Rayleigh factor on bending
-    air_drag: float  # kg/(m^2 s), linear drag on velocity relative to the air
+    air_drag: float  # kg/(m^2 s), linear drag on velocity (still air: wind acts by pressure)
     friction: float = 0.3  # Coulomb coefficient against the body
     thickness: float = 0.004  # m, kept between cloth and body (and between layers)
     max_strain: float = 0.25  # QA: the edge strain this fabric should stay within

@@ -103,7 +103,6 @@ class ImplicitSolver(ClothSolver):
         P = np.zeros(IK.P_SIZE, NP_REAL)
         P[IK.P_H] = h
         P[IK.P_GRAVITY : IK.P_GRAVITY + 3] = st.gravity
-        P[IK.P_WIND : IK.P_WIND + 3] = st.wind if self.effects.wind else (0.0, 0.0, 0.0)
         P[IK.P_TOL] = st.tolerance
         P[IK.P_CG_TOL] = st.cg_tolerance
         Q = np.zeros(IK.Q_SIZE, np.int32)
@@ -120,7 +119,7 @@ class ImplicitSolver(ClothSolver):
             self.all_springs, self.all_rest, self.all_kt, self.all_kc, self.all_beta,
             self.bends, self.kw, self.bstiff, self.bbeta,
             self.P, self.Q, self.stats,
-            self.effects.gravity, self.effects.air_drag or self.effects.wind,
+            self.effects.gravity, self.effects.air_drag,
         )  # fmt: skip
         return self.xp, h
 

@@ -15,8 +15,8 @@ mat3 = MAT3
 M3 = ti.types.ndarray(dtype=mat3, ndim=1)
 
 # Scalars and counts of `newton_solve`, packed (a kernel takes at most 64 argument elements).
-P_H, P_GRAVITY, P_WIND, P_TOL, P_CG_TOL = 0, 1, 4, 7, 8
-P_SIZE = 9
+P_H, P_GRAVITY, P_TOL, P_CG_TOL = 0, 1, 4, 5
+P_SIZE = 6
 Q_N_SPRINGS, Q_N_BENDS, Q_NEWTON_MAX, Q_CG_MAX, Q_FORCING = range(5)
 Q_SIZE = 5
 S_NEWTON, S_CG, S_UNCONVERGED = range(3)  # statistics written back
@@ -56,7 +56,7 @@ def spring_block(x: V3, springs: I2, rest: F1, k_t: F1, k_c: F1, beta: F1, e: ti
 @ti.func
 def gradient_all(x: V3, xn: V3, vn: V3, mass: F1, drag: F1, g: V3, springs: I2, rest: F1,
                  k_t: F1, k_c: F1, beta: F1, bends: I4, kw: V4, stiff: F1, bbeta: F1,
-                 gravity: vec3, wind: vec3, h: REAL, n_springs: ti.i32, n_bends: ti.i32,
+                 gravity: vec3, h: REAL, n_springs: ti.i32, n_bends: ti.i32,
                  use_gravity: ti.template(), use_air: ti.template()):
     """Gradient of the incremental potential: inertia, gravity, air drag, springs (with their
     Rayleigh damping), bending."""
@@ -65,7 +65,7 @@ def gradient_all(x: V3, xn: V3, vn: V3, mass: F1, drag: F1, g: V3, springs: I2, 
         if ti.static(use_gravity):
             gi -= mass[i] * gravity
         if ti.static(use_air):
-            gi += drag[i] * ((x[i] - xn[i]) / h - wind)
+            gi += drag[i] * (x[i] - xn[i]) / h  # still air: wind acts by pressure_drag
         g[i] = gi
     for e in range(n_springs):
         i = springs[e][0]
@@ -163,7 +163,6 @@ def newton_solve(
     pinned vertices filtered out (Baraff & Witkin), until the update is below the tolerance."""
     h = P[P_H]
     gravity = vec3(P[P_GRAVITY], P[P_GRAVITY + 1], P[P_GRAVITY + 2])
-    wind = vec3(P[P_WIND], P[P_WIND + 1], P[P_WIND + 2])
     tol = P[P_TOL]
     cg_tol = P[P_CG_TOL]
     n_springs = Q[Q_N_SPRINGS]
@@ -174,7 +173,7 @@ def newton_solve(
     ti.loop_config(serialize=True)
     for _newton in range(Q[Q_NEWTON_MAX]):
         gradient_all(x, xn, vn, mass, drag, g, springs, rest, k_t, k_c, beta, bends, kw, stiff,
-                     bbeta, gravity, wind, h, n_springs, n_bends, use_gravity, use_air)
+                     bbeta, gravity, h, n_springs, n_bends, use_gravity, use_air)
         preconditioner(x, mass, drag, diag, blocks, pinned, springs, rest, k_t, k_c, beta, bends,
                        kw, stiff, bbeta, h, n_springs, n_bends, use_air)
         rz = ti.cast(0.0, ti.f64)

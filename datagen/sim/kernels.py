@@ -47,14 +47,18 @@ AFTER_CONTACT_TOLERANCE = 1e-3
 @ti.func
 def air_velocity(vi: vec3, air: VEC4, wi: REAL, wind: vec3, h: REAL, use_air: ti.template(),
                  use_pressure: ti.template()) -> vec3:
-    """The velocity after a step h of air drag, relative to the wind: the linear drag, then the
-    pressure drag -c |v_n| v_n n on the velocity's normal part v_n. Each implicit in the velocity
-    it damps (with |v_n| taken at the step's start for the quadratic term), so neither can
-    reverse a velocity at any step. `use_pressure` (model.PRESSURE_*): off, on both faces, or
-    on the outer face only (cloth on a body: only a panel moving along its outward normal
-    meets the free stream)."""
+    """The velocity after a step h of air drag: the linear drag, then the pressure drag
+    -c |v_n| v_n n on the normal part v_n of the velocity relative to the wind. Each implicit in
+    the velocity it damps (with |v_n| taken at the step's start for the quadratic term), so
+    neither can reverse a velocity at any step. `use_pressure` (model.PRESSURE_*): off, on both
+    faces, or on the outer face only (cloth on a body: only a panel moving along its outward
+    normal meets the free stream).
+    The linear drag is Blender's velocity damping, relative to still air, and wind acts only
+    through the pressure, along each panel's normal, as Blender's wind does: taken relative to
+    the wind, the linear drag also dragged every panel along its own plane, by 0.3 N/m^2 in a
+    2 m/s wind, about twenty times the air's skin friction there (docs/fabrics.md)."""
     if ti.static(use_air):
-        vi = wind + (vi - wind) / (1.0 + h * air[0] * wi)
+        vi = vi / (1.0 + h * air[0] * wi)
     if ti.static(use_pressure != PRESSURE_OFF):
         cn = vec3(air[1], air[2], air[3])
         c = cn.norm()

@@ -956,7 +956,7 @@ class XPBDSolver(ClothSolver):
             lc.starts, lc.items,
             self.limit_adj, self.limit_lists,
             P, Q,
-            e.gravity, e.air_drag or e.wind, self.use_pressure, use_collision, e.friction,
+            e.gravity, e.air_drag, self.use_pressure, use_collision, e.friction,
             self.use_layers,
             self.use_self,
         )  # fmt: skip
@@ -1017,7 +1017,7 @@ class XPBDSolver(ClothSolver):
         self._run("fused_sweeps", PK.xpbd_substep_begin, self.x, self.xp, self.v, self.w,
                   self.air, self.cloth_faces, *self.cloth_vertex_faces, self.gravity,
                   self.wind, h, self.pin_idx, self.pin_t0, self.pin_t1, self.n_pins, s1,
-                  self.f_lam, self.lam_b, e.gravity, e.air_drag or e.wind, self.use_pressure)
+                  self.f_lam, self.lam_b, e.gravity, e.air_drag, self.use_pressure)
         for it in range(self.settings.iterations):
             reverse = self._sweep % 2
             self._sweep += 1
@@ -1047,7 +1047,7 @@ class XPBDSolver(ClothSolver):
             self.wind,
             h,
             e.gravity,
-            e.air_drag or e.wind,
+            e.air_drag,
             self.use_pressure,
         )
         self._pins(s1)
@@ -1170,7 +1170,7 @@ class ExplicitSolver(ClothSolver):
             self.wind,
             h,
             e.gravity,
-            e.air_drag or e.wind,
+            e.air_drag,
             self.use_pressure,
         )
         self._limit_strain(h)
