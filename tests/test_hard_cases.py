@@ -69,6 +69,11 @@ def test_bad_case_file_names_the_field(tmp_path):
                    "    motion: {lead_in: 0}\n")
     with pytest.raises(InputError, match=r"cases\[0\]\.motion\.lead_in.*1 or more frames"):
         load_hard_cases(bad)
+    bad.write_text("cases:\n  - name: x\n    why: y\n    garments: [{template: tshirt}]\n"
+                   "    wind: [15.0, .nan, 0.0]\n")
+    with pytest.raises(InputError, match=r"cases\[0\]\.wind': expected a list of float or null, "
+                                         r"got \[15.0, nan, 0.0\]"):
+        load_hard_cases(bad)
 
 
 def test_buried_share_sees_cloth_inside_a_part_that_passes_through_another():

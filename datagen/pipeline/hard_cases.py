@@ -65,6 +65,7 @@ class Case:
     start_inside: float = 0.0  # metres: part of the garment starts this far inside the body
     defects: bool = False  # zero-length edges, needle triangles, duplicate vertices
     root_jump: RootJump | None = None
+    wind: tuple[float, float, float] | None = None  # m/s: the scene's wind (SimSpec.wind)
     expect: str = "ok"  # "ok" or "rejected"
     reason: str = ""  # a rejection: words its reason must contain
     short_frames: int | None = None  # the tests' version (default: the file's `short_frames`)
@@ -121,12 +122,15 @@ def case_spec(case: Case, short: bool, cases: HardCases, sim: SimSpec | None = N
                     cuts=dict(g.cuts), elastic=dict(g.elastic), layer=g.layer)
         for k, g in enumerate(case.garments)
     )
+    simulation = sim or SimSpec()
+    if case.wind is not None:
+        simulation = replace(simulation, wind=tuple(case.wind))
     return SceneSpec(
         dataset_seed=0, sequence_index=0, sequence_id=f"hard-{case.name}",
         subject=SubjectSpec(gender=case.gender, shape=dict(case.shape)),
         motion=motion,
         outfit=OutfitSpec(garments=garments, tightness=tuple(case.tightness), sewn=case.sewn),
-        simulation=sim or SimSpec(),
+        simulation=simulation,
     )
 
 
