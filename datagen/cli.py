@@ -360,7 +360,7 @@ def scene_with_outfit(spec, garment: str | None, fabric: str | None, seed: int):
                    "quadratic drag on the panels).")
 @click.option("--wind", default=None,
               help="Wind velocity 'x,y,z' in m/s (turns wind on, and with it the air's "
-                   "pressure on the panels, pressure_drag).")
+                   "pressure on the panels, pressure_drag, the law wind pushes by).")
 @click.option("--out", required=True, type=click.Path(dir_okay=False), callback=shard_path,
               help="Output shard (.h5).")
 @click.option("--export-obj", type=click.Path(file_okay=False),
