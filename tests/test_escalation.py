@@ -229,10 +229,39 @@ def test_a_guarded_run_stops_at_its_first_frame_over_a_bound_and_climbs_the_same
     dropped = guarded.report["escalations"]
     assert [d["settings"] for d in dropped] == ["xpbd draft 10x2, sor 1.6",
                                                 "xpbd default 20x4, sor 1"]
+    totals = set()
     for d, first in zip(dropped, firsts, strict=True):
         assert first < 29  # stopped before the end
-        assert re.search(rf"qa/over_strain_share [0-9.]+ at frame {first}, bound 0\.001\); "
-                         r"the run stopped there$", d["reason"]), d["reason"]
+        # The reason says where: the garment and how many of its springs (a sphere has no
+        # body parts to name).
+        found = re.search(rf"qa/over_strain_share ([0-9.]+) at frame {first}, bound 0\.001; "
+                          r"the cotton sheet 'sheet', ([0-9]+) springs over\); "
+                          r"the run stopped there$", d["reason"])
+        assert found, d["reason"]
+        totals.add(round(int(found[2]) / float(found[1])))  # the sheet's springs, both runs
+    assert len(totals) == 1
+
+
+def test_a_guarded_runs_reason_names_the_body_part_under_the_broken_bound(monkeypatch):
+    """On a collider with body parts, the guard's reason also names the parts nearest the
+    springs over their bound (qa.where_on_body, checked by hand in test_validate): the sphere
+    of the tests above as one part, the left shin, is the only part to name, and the count of
+    springs over is the breach's share of the sheet's springs, as in the test above."""
+    garments, track = _sheet_on_sphere(monkeypatch, 0.012)
+    track = replace(track, face_parts=np.full(len(track.faces), 4))  # PART_NAMES[4]: shin_l
+    options = SimOptions(quality="draft", settle_seconds=0.0, strain_refinements=0,
+                         bound_guard=True)
+    with pytest.raises(BoundBroken) as info:
+        simulate(garments, track, options)
+    found = re.fullmatch(r"fabric springs strained beyond their fabric's max_strain "
+                         r"\(qa/over_strain_share ([0-9.]+) at frame [0-9]+, bound 0\.001; "
+                         r"the cotton sheet 'sheet', ([0-9]+) springs over, nearest shin_l "
+                         r"100 %\); the run stopped there", info.value.reason)
+    assert found, info.value.reason
+    from datagen.sim.model import build_cloth_model
+
+    springs = len(build_cloth_model([(garments[0], FABRICS["cotton"])]).fabric_strain_terms[0])
+    assert int(found[2]) == round(float(found[1]) * springs) >= 1
 
 
 def test_a_guarded_sequence_over_its_bound_on_every_rung_is_rejected_naming_every_run(
@@ -278,6 +307,9 @@ def test_a_sequence_over_its_bound_on_every_rung_is_rejected_naming_every_run(mo
     assert rejected.sim_runs == 4  # the gate's record still says what the sequence cost
     assert rejected.reason.startswith(
         "fabric springs strained beyond their fabric's max_strain (qa/over_strain_share ")
+    # The gate says where, from the frame's stored positions, as a guarded run does.
+    assert re.match(r"[^;]*; the cotton sheet 'sheet', [1-9][0-9]* springs over\); simulated",
+                    rejected.reason), rejected.reason
     assert ("; simulated again at reference 80x16, sor 1, after the runs at xpbd draft 10x2, "
             "sor 1.6 (fabric springs strained beyond their fabric's max_strain "
             "(qa/over_strain_share 0.") in rejected.reason
@@ -422,6 +454,30 @@ def test_simulate_writes_a_scene_over_a_bound_but_warns_that_a_dataset_would_rej
             "frame 9, bound 0.001)") in over.stderr
     assert "0.200 % of springs over their fabric's max_strain" in over.output
     assert "warning" not in run(0.0009, "within").stderr
+
+
+def test_the_gate_says_where_a_finished_run_breaks_the_strain_bound():
+    """A finished run over the strain bound (a batch's, or `datagen simulate`'s) is judged from
+    its stored frames: the shard factory's record with its upper garment blown up 50 % about
+    its centre at frame 4 (its springs' strain there lies within -4.3 % and +2.6 %, so blown
+    up each is at least 43 % long, past cotton's 0.25; at 30 %, 7 of 660 stayed within it) and
+    its body's vertices all of the chest. The gate names that garment, every one of its
+    fabric springs, and the chest; the lower garment, unstrained, is not named."""
+    from datagen.pipeline.stages import over_qa_bounds
+    from datagen.sim.model import build_cloth_model
+
+    record = sf.make_record(0).record
+    record.body.rest.part_labels[:] = 9  # PART_NAMES[9]: chest
+    upper = next(g for g in record.garments if g.name == "upper")
+    frames = record.sim.vertices["upper"]
+    centre = frames[4].mean(axis=0)
+    frames[4] = centre + 1.5 * (frames[4] - centre)
+    record.sim.qa["over_strain_share"][4] = 1.0
+    springs = len(build_cloth_model([(upper, FABRICS[upper.fabric])]).fabric_strain_terms[0])
+    found, reason = over_qa_bounds(record)
+    assert [b.series for b in found] == ["over_strain_share"]
+    assert (f"(qa/over_strain_share 1 at frame 4, bound 0.001; the {upper.fabric} "
+            f"{upper.category} 'upper', {springs} springs over, nearest chest 100 %)") in reason
 
 
 def _falling_top(frames: int = 12):

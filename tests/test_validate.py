@@ -418,6 +418,31 @@ def test_neckline_slip_measures_how_far_a_neckline_left_the_neck():
         neckline_slip(frames, ring[:5], np.stack([neck, neck]), neck)
 
 
+def test_where_on_body_names_the_parts_nearest_the_cloth_most_first():
+    """qa.where_on_body, checked by hand: a body of two parts, a thigh (part 1) along x < 0
+    and a shin (part 4) along x > 0. Three points over the shin and one over the thigh read
+    shin 75 %, thigh 25 %; a point between the thigh's last vertex and the middle counts for
+    the thigh; a tie is named in part order; the third part is left out at
+    most=2; no points, no words. The guard's reasons carry it (test_escalation)."""
+    from datagen.body.parts import PART_NAMES
+    from datagen.qa import where_on_body
+
+    x = np.linspace(-0.5, 0.5, 11)
+    body = np.stack([x, np.zeros(11), np.zeros(11)], axis=1)
+    parts = np.where(x < 0.0, 1, 4)
+    parts[5] = 9  # the vertex at x = 0: the chest, say
+    assert (PART_NAMES[1], PART_NAMES[4], PART_NAMES[9]) == ("thigh_l", "shin_l", "chest")
+    over = np.array([[0.31, 0.0, 0.01], [0.42, 0.01, 0.0], [0.18, -0.01, 0.0],
+                     [-0.33, 0.0, 0.02]])
+    assert where_on_body(over, body, parts, PART_NAMES) == "shin_l 75 %, thigh_l 25 %"
+    assert where_on_body([[-0.14, 0.0, 0.0]], body, parts, PART_NAMES) == "thigh_l 100 %"
+    tie = np.array([[-0.3, 0.0, 0.0], [0.3, 0.0, 0.0], [0.01, 0.0, 0.0]])
+    assert where_on_body(tie, body, parts, PART_NAMES) == "thigh_l 33 %, shin_l 33 %"
+    assert where_on_body(tie, body, parts, PART_NAMES, most=3) == \
+        "thigh_l 33 %, shin_l 33 %, chest 33 %"
+    assert where_on_body(np.zeros((0, 3)), body, parts, PART_NAMES) == ""
+
+
 def test_a_rejection_as_unstable_says_which_neckline_had_slid_off_first():
     """simulate.slid_necklines_note, the clause a rejection as unstable ends with: the ring of
     the test above, as the neckline of a top that comes second in the outfit (its rows after

@@ -264,12 +264,32 @@ def over_qa_bounds(record: SequenceRecord,
 
     if record.status != "ok" or record.sim is None or not record.garments:
         return [], ""
-    found = (qa.breaches(record.sim.qa) + buried_at_flexed_joints(record, fabrics)
-             + slipped_necklines(record))
+    found = ([_with_where(b, record, fabrics) for b in qa.breaches(record.sim.qa)]
+             + buried_at_flexed_joints(record, fabrics) + slipped_necklines(record))
     if not found:
         return [], ""
     return found, "; ".join(b.reason for b in found) + flexion_overlap_note(
         record.body, [b.frame for b in found]) + escalation_note(record.sim)
+
+
+def _with_where(breach: Breach, record: SequenceRecord,
+                fabrics: Mapping[str, Fabric] | None) -> Breach:
+    """A strain breach of a finished record with where it lies at its frame (where_strained,
+    as a guarded run's reason has it; the depth series' flags are not kept after a run)."""
+    if breach.series != "over_strain_share":
+        return breach
+    from datagen.sim.fabrics import get_fabric
+    from datagen.sim.model import build_cloth_model
+    from datagen.sim.simulate import where_strained
+
+    garments, body, frame = record.garments, record.body, breach.frame
+    model = build_cloth_model([(g, get_fabric(g.fabric, dict(fabrics or {}))) for g in garments])
+    x = np.concatenate([record.sim.vertices[g.name][frame] for g in garments]).astype(np.float64)
+    body_x = parts = None
+    if body is not None:
+        body_x = body.vertices[body.lead_in_frames + frame]
+        parts = body.rest.part_labels
+    return replace(breach, where=where_strained(model, garments, x, body_x, parts))
 
 
 def record_buried_share(record: SequenceRecord, frames: np.ndarray | None = None,

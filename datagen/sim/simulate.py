@@ -317,6 +317,45 @@ def _fabric_strain(model: ClothModel, x: np.ndarray) -> tuple[np.ndarray, np.nda
     return strain, strain > bound
 
 
+def where_strained(model: ClothModel, garments: list[Garment], x: np.ndarray,
+                   body: np.ndarray | None, vertex_parts: np.ndarray | None,
+                   over: np.ndarray | None = None) -> str:
+    """Where the strain bound broke at positions x: the garment with the largest share of its
+    fabric springs over their bound (`over`, each spring's flag as _fabric_strain gives it;
+    None: measured here), how many, and the body parts nearest their midpoints
+    (qa.where_on_body) where a `body` (V, 3) and its `vertex_parts` are given."""
+    if over is None:
+        over = _fabric_strain(model, x)[1]
+    first, second = model.fabric_strain_terms[:2]
+    per_garment = _garments_within(model, 0, model.n_vertices, first)
+    k = int(np.argmax([over[springs].mean() for _, _, springs in per_garment]))
+    springs = per_garment[k][2][over[per_garment[k][2]]]
+    return _where(garments[k], "springs over", 0.5 * (x[first[springs]] + x[second[springs]]),
+                  body, vertex_parts)
+
+
+def where_deep(model: ClothModel, garments: list[Garment], x: np.ndarray, deep: np.ndarray,
+               body: np.ndarray | None, vertex_parts: np.ndarray | None) -> str:
+    """where_strained for the depth bound: `deep` flags each vertex too deep."""
+    ranges = model.garment_ranges
+    k = int(np.argmax([deep[lo:hi].mean() for lo, hi in ranges]))
+    lo, hi = ranges[k]
+    return _where(garments[k], "vertices too deep", x[lo:hi][deep[lo:hi]], body, vertex_parts)
+
+
+def _where(garment: Garment, what: str, points: np.ndarray, body: np.ndarray | None,
+           vertex_parts: np.ndarray | None) -> str:
+    from datagen.body.parts import PART_NAMES
+    from datagen.qa import where_on_body
+
+    if len(points) == 0:  # positions that break nothing (a record whose series were set)
+        return ""
+    out = f"the {garment.fabric} {garment.category} '{garment.name}', {len(points)} {what}"
+    if body is None or vertex_parts is None or int(vertex_parts.max()) >= len(PART_NAMES):
+        return out  # no body, or a batch's joined parts, not one body's
+    return out + ", nearest " + where_on_body(points, body, vertex_parts, PART_NAMES)
+
+
 def _row_norms(a: np.ndarray) -> np.ndarray:
     """|a_i| of an (N, 3) array (np.linalg.norm(a, axis=1), five times faster)."""
     return np.sqrt(np.einsum("ij,ij->i", a, a))
@@ -530,6 +569,7 @@ class _Simulation:
         self._t_created = time.perf_counter()
         self.garments = garments
         self.body = body
+        self._vertex_parts: np.ndarray | None = None  # the body's vertices' parts (_where_broken)
         self.options = options
         self.fabrics = [get_fabric(g.fabric, options.fabrics) for g in garments]
         self.model = build_cloth_model(list(zip(garments, self.fabrics, strict=True)))
@@ -928,11 +968,34 @@ class _Simulation:
         qa_rows.append([_qa(self.model, p, v, flags, strain) for p in self.parts])
         if self.options.bound_guard and len(self.parts) == 1:
             frame = len(qa_rows) - 1
-            found = [replace(b, frame=frame) for b in breaches(
-                {k: np.array([value]) for k, value in qa_rows[-1][0].items()})]
+            found = [replace(b, frame=frame, where=self._where_broken(b.series, x, strain, flags,
+                                                                     body_frame))
+                     for b in breaches({k: np.array([value])
+                                        for k, value in qa_rows[-1][0].items()})]
             if found:
                 raise BoundBroken("; ".join(b.reason for b in found) + "; the run stopped there",
                                   (frame, frame))
+
+    def _where_broken(self, series: str, x: np.ndarray, strain: tuple[np.ndarray, np.ndarray],
+                      flags: tuple[np.ndarray, np.ndarray] | None, body_frame: int) -> str:
+        """Where a bound the guard found broken lies (where_strained, where_deep), against
+        this frame's body where the collider is one with parts."""
+        track = self.body
+        parts = getattr(track, "face_parts", None)
+        body_x = None
+        if parts is not None:
+            if self._vertex_parts is None:
+                self._vertex_parts = np.zeros(track.vertices.shape[1], dtype=np.int64)
+                for corner in range(3):
+                    self._vertex_parts[track.faces[:, corner]] = parts
+            body_x = track.vertices[body_frame]
+        if series == "over_strain_share":
+            return where_strained(self.model, self.garments, x, body_x, self._vertex_parts,
+                                  strain[1])
+        if series == "deep_share" and flags is not None:
+            return where_deep(self.model, self.garments, x, flags[1], body_x,
+                              self._vertex_parts)
+        return ""
 
     def _result(self, outputs, qa_rows, setup: float, frames: float, settle) -> SimResult:
         costs: dict[str, float] = {}
