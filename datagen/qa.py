@@ -60,9 +60,8 @@ def where_on_body(points: np.ndarray, body: np.ndarray, vertex_parts: np.ndarray
                   part_names: Sequence[str], most: int = 2) -> str:
     """The body parts nearest the cloth `points` (K, 3), by each point's nearest vertex of the
     `body` (V, 3) whose parts `vertex_parts` (V,) index `part_names`: the `most` most common
-    with their shares, 'thigh_l 62 %, pelvis 23 %'. Empty for no points. Says where a bound
-    broke, so a rejection names the fold or the limb (a leather skirt caught in a knee's fold
-    reads 'thigh_l ..., shin_l ...') instead of leaving it to a probe."""
+    with their shares, 'thigh_l 52 %, pelvis 29 %'. Empty for no points. Says where a bound
+    broke, so a rejection names the limb or the fold instead of leaving it to a probe."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(points) == 0:
         return ""

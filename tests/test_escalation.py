@@ -314,6 +314,9 @@ def test_a_sequence_over_its_bound_on_every_rung_is_rejected_naming_every_run(mo
             "sor 1.6 (fabric springs strained beyond their fabric's max_strain "
             "(qa/over_strain_share 0.") in rejected.reason
     assert "), at xpbd default 20x4, sor 1 (fabric springs strained" in rejected.reason
+    # Every run, the dropped ones too, says where: four times the sheet.
+    assert len(re.findall(r"; the cotton sheet 'sheet', [1-9][0-9]* springs over\)",
+                          rejected.reason)) == 4, rejected.reason
     assert ") and at xpbd reference 40x8, sor 1 (fabric springs strained" in rejected.reason
     # From steps the caller gave there is nothing to escalate to: one run, its breach as it is.
     calls.clear()

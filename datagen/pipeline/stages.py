@@ -215,6 +215,7 @@ def simulate_within_bounds(garments: list[Garment], body: BodySequence | Collide
                     sim.report["escalated_from"] = dropped[0]
                     sim.report["escalations"] = dropped
                 return sim
+            found = [with_where(b, garments, sim, body, current.fabrics) for b in found]
             dropped.append({"settings": settings, "reason": "; ".join(b.reason for b in found),
                             "wall_time_s": float(sim.report["wall_time_s"])})
         current, outcome = up, None
@@ -264,7 +265,8 @@ def over_qa_bounds(record: SequenceRecord,
 
     if record.status != "ok" or record.sim is None or not record.garments:
         return [], ""
-    found = ([_with_where(b, record, fabrics) for b in qa.breaches(record.sim.qa)]
+    found = ([with_where(b, record.garments, record.sim, record.body, fabrics)
+              for b in qa.breaches(record.sim.qa)]
              + buried_at_flexed_joints(record, fabrics) + slipped_necklines(record))
     if not found:
         return [], ""
@@ -272,23 +274,26 @@ def over_qa_bounds(record: SequenceRecord,
         record.body, [b.frame for b in found]) + escalation_note(record.sim)
 
 
-def _with_where(breach: Breach, record: SequenceRecord,
-                fabrics: Mapping[str, Fabric] | None) -> Breach:
-    """A strain breach of a finished record with where it lies at its frame (where_strained,
-    as a guarded run's reason has it; the depth series' flags are not kept after a run)."""
+def with_where(breach: Breach, garments: list[Garment], sim: SimResult,
+               body: BodySequence | ColliderTrack | None,
+               fabrics: Mapping[str, Fabric] | None) -> Breach:
+    """A strain breach of a finished run `sim` with where it lies at its frame
+    (simulate.where_strained, as a guarded run's reason has it); other breaches as they are
+    (the depth series' per-vertex flags are not kept after a run)."""
     if breach.series != "over_strain_share":
         return breach
     from datagen.sim.fabrics import get_fabric
     from datagen.sim.model import build_cloth_model
     from datagen.sim.simulate import where_strained
 
-    garments, body, frame = record.garments, record.body, breach.frame
+    frame = breach.frame
     model = build_cloth_model([(g, get_fabric(g.fabric, dict(fabrics or {}))) for g in garments])
-    x = np.concatenate([record.sim.vertices[g.name][frame] for g in garments]).astype(np.float64)
+    x = np.concatenate([sim.vertices[g.name][frame] for g in garments]).astype(np.float64)
     body_x = parts = None
     if body is not None:
         body_x = body.vertices[body.lead_in_frames + frame]
-        parts = body.rest.part_labels
+        parts = (body.rest.part_labels if isinstance(body, BodySequence)
+                 else body.vertex_parts)
     return replace(breach, where=where_strained(model, garments, x, body_x, parts))
 
 

@@ -511,6 +511,9 @@ class ColliderTrack:
     # for other colliders and a batch's joined track.
     neck: np.ndarray | None = None
     rest_neck: np.ndarray | None = None
+    # (V,) each vertex's body part, for the place a breach's reason names (where_strained);
+    # None: taken from face_parts (a test's collider).
+    vertex_parts: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -531,7 +534,8 @@ def track_of(body: BodySequence) -> ColliderTrack:
     fields = FoldFields(body.vertices, faces, face_parts, folds, PART_INDEX) if folds else None
     return ColliderTrack(body.vertices, faces, body.collider_face_mask, body.fps,
                          body.lead_in_frames, face_parts, fields,
-                         neck=body.joints[:, NECK_JOINT], rest_neck=body.rest.joints[NECK_JOINT])
+                         neck=body.joints[:, NECK_JOINT], rest_neck=body.rest.joints[NECK_JOINT],
+                         vertex_parts=body.rest.part_labels)
 
 
 def body_start_transform(body: BodySequence) -> tuple[np.ndarray, np.ndarray]:
@@ -984,6 +988,8 @@ class _Simulation:
         parts = getattr(track, "face_parts", None)
         body_x = None
         if parts is not None:
+            if self._vertex_parts is None:
+                self._vertex_parts = getattr(track, "vertex_parts", None)
             if self._vertex_parts is None:
                 self._vertex_parts = np.zeros(track.vertices.shape[1], dtype=np.int64)
                 for corner in range(3):
