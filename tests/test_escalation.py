@@ -248,7 +248,7 @@ def test_a_guarded_runs_reason_names_the_body_part_under_the_broken_bound(monkey
     of the tests above as one part, the left shin, is the only part to name, and the count of
     springs over is the breach's share of the sheet's springs, as in the test above."""
     garments, track = _sheet_on_sphere(monkeypatch, 0.012)
-    track = replace(track, face_parts=np.full(len(track.faces), 4))  # PART_NAMES[4]: shin_l
+    track = replace(track, vertex_parts=np.full(track.vertices.shape[1], 4))  # 4: shin_l
     options = SimOptions(quality="draft", settle_seconds=0.0, strain_refinements=0,
                          bound_guard=True)
     with pytest.raises(BoundBroken) as info:

@@ -351,8 +351,8 @@ def _where(garment: Garment, what: str, points: np.ndarray, body: np.ndarray | N
     if len(points) == 0:  # positions that break nothing (a record whose series were set)
         return ""
     out = f"the {garment.fabric} {garment.category} '{garment.name}', {len(points)} {what}"
-    if body is None or vertex_parts is None or int(vertex_parts.max()) >= len(PART_NAMES):
-        return out  # no body, or a batch's joined parts, not one body's
+    if body is None or vertex_parts is None:
+        return out
     return out + ", nearest " + where_on_body(points, body, vertex_parts, PART_NAMES)
 
 
@@ -512,7 +512,7 @@ class ColliderTrack:
     neck: np.ndarray | None = None
     rest_neck: np.ndarray | None = None
     # (V,) each vertex's body part, for the place a breach's reason names (where_strained);
-    # None: taken from face_parts (a test's collider).
+    # None for other colliders and a batch's joined track.
     vertex_parts: np.ndarray | None = None
 
     @property
@@ -573,7 +573,6 @@ class _Simulation:
         self._t_created = time.perf_counter()
         self.garments = garments
         self.body = body
-        self._vertex_parts: np.ndarray | None = None  # the body's vertices' parts (_where_broken)
         self.options = options
         self.fabrics = [get_fabric(g.fabric, options.fabrics) for g in garments]
         self.model = build_cloth_model(list(zip(garments, self.fabrics, strict=True)))
@@ -983,24 +982,13 @@ class _Simulation:
     def _where_broken(self, series: str, x: np.ndarray, strain: tuple[np.ndarray, np.ndarray],
                       flags: tuple[np.ndarray, np.ndarray] | None, body_frame: int) -> str:
         """Where a bound the guard found broken lies (where_strained, where_deep), against
-        this frame's body where the collider is one with parts."""
-        track = self.body
-        parts = getattr(track, "face_parts", None)
-        body_x = None
-        if parts is not None:
-            if self._vertex_parts is None:
-                self._vertex_parts = getattr(track, "vertex_parts", None)
-            if self._vertex_parts is None:
-                self._vertex_parts = np.zeros(track.vertices.shape[1], dtype=np.int64)
-                for corner in range(3):
-                    self._vertex_parts[track.faces[:, corner]] = parts
-            body_x = track.vertices[body_frame]
+        this frame's body where the track carries its vertices' parts."""
+        parts = getattr(self.body, "vertex_parts", None)
+        body_x = None if parts is None else self.body.vertices[body_frame]
         if series == "over_strain_share":
-            return where_strained(self.model, self.garments, x, body_x, self._vertex_parts,
-                                  strain[1])
+            return where_strained(self.model, self.garments, x, body_x, parts, strain[1])
         if series == "deep_share" and flags is not None:
-            return where_deep(self.model, self.garments, x, flags[1], body_x,
-                              self._vertex_parts)
+            return where_deep(self.model, self.garments, x, flags[1], body_x, parts)
         return ""
 
     def _result(self, outputs, qa_rows, setup: float, frames: float, settle) -> SimResult:
